@@ -1,0 +1,3 @@
+"""softplot: a digital softcopy plotter for scanned photogrammetric photographs."""
+
+__version__ = "0.1.0"
