@@ -1,0 +1,1 @@
+"""Whole jobs: process, batch (dask.distributed), demo; projects and sessions."""

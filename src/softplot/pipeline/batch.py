@@ -1,0 +1,228 @@
+"""Archive batches on dask.distributed: many scans, bounded memory, resume, failures recorded.
+
+Each scan is one task: :func:`softplot.pipeline.process.process_scan` on a worker, which
+writes ``<out>/<stem>.json`` atomically (temporary file, then rename) and ends it with
+``"complete": true``. A rerun skips every scan whose result file is complete and redoes one
+that is missing or half-written. At most ``2 * workers`` tasks are in flight at any time, so
+memory stays bounded however many scans the glob names; results come back as small dicts
+(the images stay on the workers).
+"""
+
+from __future__ import annotations
+
+import csv
+import glob as globmod
+import json
+import os
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from softplot.errors import SoftplotError
+
+SUMMARY_FIELDS = ["scan", "status", "marks", "measured", "rms_px", "seconds", "error"]
+
+
+@dataclass
+class BatchReport:
+    """What a batch did: one row per scan (``SUMMARY_FIELDS``) and the counts."""
+
+    rows: list[dict] = field(default_factory=list)
+    skipped: int = 0
+    seconds: float = 0.0
+
+    @property
+    def failed(self) -> int:
+        return sum(1 for r in self.rows if r["status"] == "failed")
+
+    @property
+    def done(self) -> int:
+        return sum(1 for r in self.rows if r["status"] == "done")
+
+    def table(self) -> str:
+        """The summary table printed at the end of a batch."""
+        lines = [f"{'scan':<40} {'status':<8} {'measured':>9} {'rms px':>8} {'s':>6}  error"]
+        for r in self.rows:
+            meas = f"{r.get('measured', '')}/{r.get('marks', '')}" if r.get("marks") else ""
+            rms = f"{r['rms_px']:.4f}" if isinstance(r.get("rms_px"), (int, float)) else ""
+            sec = f"{r['seconds']:.2f}" if isinstance(r.get("seconds"), (int, float)) else ""
+            lines.append(
+                f"{Path(r['scan']).name[:40]:<40} {r['status']:<8} {meas:>9} {rms:>8} {sec:>6}"
+                f"  {r.get('error') or ''}"
+            )
+        lines.append(
+            f"{self.done} done, {self.failed} failed, {self.skipped} skipped (already done), "
+            f"{self.seconds:.1f} s"
+        )
+        return "\n".join(lines)
+
+
+def expand(patterns: Iterable[str]) -> list[Path]:
+    """Scan paths named by glob patterns (recursive ``**`` allowed), sorted, de-duplicated."""
+    out: dict[str, Path] = {}
+    for pat in patterns:
+        hits = globmod.glob(pat, recursive=True) if globmod.has_magic(pat) else [pat]
+        for h in hits:
+            p = Path(h)
+            if p.is_file() and not p.name.endswith((".json", ".truth.json")):
+                out[str(p.resolve())] = p
+    return [out[k] for k in sorted(out)]
+
+
+def result_path(out_dir: Path, scan: Path) -> Path:
+    """Where the per-scan result of ``scan`` goes."""
+    return Path(out_dir) / f"{scan.stem}.json"
+
+
+def is_complete(path: Path) -> bool:
+    """True when ``path`` is a fully written result (parses and says ``complete``)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return bool(json.load(fh).get("complete"))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def write_json_atomic(path: Path, obj: dict) -> None:
+    """Write JSON to ``path`` via a temporary file and an atomic rename (fsync'd)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(obj, fh, indent=1, allow_nan=False, default=_json_default)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _row_from_result(scan: Path, res: dict) -> dict:
+    return {
+        "scan": str(scan),
+        "status": res.get("status", "done"),
+        "marks": res.get("marks_total"),
+        "measured": res.get("marks_measured"),
+        "rms_px": res.get("rms_px"),
+        "seconds": res.get("seconds"),
+        "error": res.get("error"),
+    }
+
+
+def run_one(task: Callable[..., dict], scan: str, out_dir: str, kwargs: dict) -> dict:
+    """Worker side: process one scan, never raise; the outcome is a small summary dict."""
+    t0 = time.perf_counter()
+    scan_p = Path(scan)
+    try:
+        res = task(scan_p, Path(out_dir), **kwargs)
+        res.setdefault("status", "done")
+    except SoftplotError as exc:
+        res = {"status": "failed", "error": str(exc)}
+    except Exception as exc:  # noqa: BLE001 - a batch records every failure and goes on
+        res = {"status": "failed", "error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+    res["seconds"] = time.perf_counter() - t0
+    if res["status"] == "failed":
+        # a failure is recorded in its own file so the rerun retries it (it is not complete)
+        write_json_atomic(
+            Path(out_dir) / f"{scan_p.stem}.error.json",
+            {"scan": str(scan_p), "error": res["error"], "complete": False},
+        )
+    return _row_from_result(scan_p, res)
+
+
+def run_batch(
+    scans: list[Path],
+    out_dir: Path,
+    task: Callable[..., dict],
+    task_kwargs: dict | None = None,
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: bool = True,
+    memory_limit: str = "auto",
+) -> BatchReport:
+    """Process ``scans`` with ``task(scan, out_dir, **task_kwargs)`` on dask.distributed.
+
+    ``scheduler`` is the address of an existing cluster; without it a LocalCluster of
+    ``workers`` single-threaded worker processes is started and closed again. Scans whose
+    result is already complete are skipped. The summary CSV ``summary.csv`` in ``out_dir``
+    lists every scan of this run and of earlier runs found complete.
+    """
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise SoftplotError(
+            "softplot batch needs dask.distributed: pip install 'softplot[batch]'"
+        ) from exc
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    kwargs = dict(task_kwargs or {})
+    report = BatchReport()
+    t0 = time.perf_counter()
+    todo = []
+    for s in scans:
+        rp = result_path(out_dir, s)
+        if is_complete(rp):
+            report.skipped += 1
+            with open(rp, encoding="utf-8") as fh:
+                report.rows.append({**_row_from_result(s, json.load(fh)), "status": "skipped"})
+        else:
+            todo.append(s)
+    if todo:
+        cluster = None
+        if scheduler:
+            client = Client(scheduler)
+        else:
+            cluster = LocalCluster(
+                n_workers=max(1, workers),
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                memory_limit=memory_limit,
+            )
+            client = Client(cluster)
+        try:
+            window = 2 * max(1, len(client.scheduler_info().get("workers", {})) or workers)
+            pending = iter(todo)
+            ac = as_completed()
+            for s in [next(pending) for _ in range(min(window, len(todo)))]:
+                ac.add(client.submit(run_one, task, str(s), str(out_dir), kwargs, pure=False))
+            bar = tqdm(total=len(todo), unit="scan", disable=not progress, desc="batch")
+            for fut in ac:
+                report.rows.append(fut.result())
+                fut.release()
+                bar.update(1)
+                nxt = next(pending, None)
+                if nxt is not None:
+                    ac.add(client.submit(run_one, task, str(nxt), str(out_dir), kwargs, pure=False))
+            bar.close()
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    report.rows.sort(key=lambda r: r["scan"])
+    report.seconds = time.perf_counter() - t0
+    write_summary(out_dir / "summary.csv", report.rows)
+    return report
+
+
+def write_summary(path: Path, rows: list[dict]) -> None:
+    """Write the summary CSV (``SUMMARY_FIELDS``) atomically."""
+    tmp = Path(path).with_name(f".{Path(path).name}.tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow(r)
+    os.replace(tmp, path)
