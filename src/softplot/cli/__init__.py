@@ -19,6 +19,7 @@ from softplot.errors import SoftplotError
 #: sub-command modules of :mod:`softplot.cli`, each exposing ``command``
 COMMANDS = [
     "cameras",
+    "info",
 ]
 
 
