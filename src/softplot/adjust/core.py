@@ -1,0 +1,425 @@
+"""Dense weighted least squares: Gauss-Markov (Gauss-Newton) with constraints and statistics.
+
+Model (``docs/orientation.md`` section "Least squares"): observations ``l`` (n,) with standard
+errors ``sigma`` (n,), unknowns ``x`` (u,), a function ``f(x)`` with Jacobian ``J = df/dx``::
+
+    l + v = f(x_hat),   weights  p_i = sigma0_prior**2 / sigma_i**2
+
+and optional equality constraints ``g(x) = 0`` (c,) with Jacobian ``G``, solved by the bordered
+normal equations::
+
+    [ N  G' ] [dx]   [ J' P (l - f) ]
+    [ G  0  ] [ k] = [     -g       ]      N = J' P J
+
+Some unknowns may instead be held fixed (eliminated). Every iteration is a Gauss-Newton step,
+halved while the weighted sum of squares grows (unconstrained problems only). Results:
+
+* redundancy ``r = n - u_free + c``;
+* ``sigma0 = sqrt(v' P v / r)`` (a posteriori standard error of unit weight; same unit as
+  ``sigma0_prior``) - never divided by ``n`` or ``2n``;
+* cofactor ``Qxx`` (top-left block of the inverse bordered matrix, ``N^-1`` without
+  constraints) and covariance ``sigma0**2 Qxx`` (``sigma0_prior**2 Qxx`` when ``r = 0``);
+* residuals ``v = f(x_hat) - l``, their cofactors ``qvv_i = 1/p_i - (J Qxx J')_ii``,
+  redundancy numbers ``r_i = p_i qvv_i`` (they sum to ``r``);
+* Baarda's standardised residuals ``w_i = v_i / (sigma0_prior sqrt(qvv_i))`` and data
+  snooping: ``|w_i| > k`` with ``k = Phi^-1(1 - alpha0/2)`` (3.29 for ``alpha0 = 0.001``) flags
+  a probable blunder. Observations with ``r_i < 1e-8`` are uncontrolled: ``w_i = nan``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+
+from softplot.adjust.diagnose import DEFAULT_RCOND, check_determined
+from softplot.errors import SoftplotError
+
+__all__ = [
+    "Adjustment",
+    "least_squares",
+    "linear_least_squares",
+    "critical_value",
+    "weights_from_sigma",
+]
+
+
+def critical_value(alpha0: float = 0.001) -> float:
+    """Two-sided normal critical value of Baarda's w-test: 3.29 for ``alpha0 = 0.001``."""
+    if not 0.0 < alpha0 < 1.0:
+        raise SoftplotError(f"significance level alpha0 must be in (0, 1), got {alpha0}")
+    return float(scipy.stats.norm.ppf(1.0 - alpha0 / 2.0))
+
+
+def weights_from_sigma(sigma, n: int, sigma0_prior: float = 1.0) -> np.ndarray:
+    """Weights ``p_i = sigma0_prior**2 / sigma_i**2`` (unit weights when ``sigma`` is None)."""
+    if sigma is None:
+        return np.ones(n)
+    s = np.broadcast_to(np.asarray(sigma, dtype=float), (n,))
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise SoftplotError("standard errors of the observations must be finite and > 0")
+    return (sigma0_prior / s) ** 2
+
+
+@dataclass
+class Adjustment:
+    """Result of a least-squares adjustment (Gauss-Markov or Gauss-Helmert).
+
+    Attributes
+    ----------
+    names : tuple of str
+        Unknowns in order.
+    x : ndarray, shape (u,)
+        Estimates (fixed unknowns keep their given value).
+    cofactor : ndarray, shape (u, u)
+        ``Qxx`` (rows/columns of fixed unknowns are zero).
+    sigma0 : float
+        A posteriori standard error of unit weight ``sqrt(v'Pv / r)`` (nan when r = 0).
+    sigma0_prior : float
+        A priori standard error of unit weight.
+    redundancy : int
+        ``r = n - u_free + c``.
+    residuals : ndarray, shape (n,)
+        ``v`` (adjusted minus observed), unit of the observations.
+    qvv : ndarray, shape (n,)
+        Diagonal cofactors of the residuals.
+    redundancy_numbers : ndarray, shape (n,)
+        ``r_i = p_i qvv_i`` (sum = r).
+    standardized : ndarray, shape (n,)
+        Baarda's ``w_i`` (nan for uncontrolled observations).
+    critical_value : float
+        Threshold of the w-test.
+    alpha0 : float
+        Significance level of the w-test.
+    flagged : ndarray of bool, shape (n,)
+        ``|w_i| > critical_value``.
+    fixed : ndarray of bool, shape (u,)
+        Unknowns held fixed.
+    n_obs, n_constraints : int
+    iterations : int
+    converged : bool
+    history : list of float
+        ``v'Pv`` after every iteration.
+    weights : ndarray, shape (n,)
+    """
+
+    names: tuple
+    x: np.ndarray
+    cofactor: np.ndarray
+    sigma0: float
+    sigma0_prior: float
+    redundancy: int
+    residuals: np.ndarray
+    qvv: np.ndarray
+    redundancy_numbers: np.ndarray
+    standardized: np.ndarray
+    critical_value: float
+    alpha0: float
+    flagged: np.ndarray
+    fixed: np.ndarray
+    n_obs: int
+    n_constraints: int
+    iterations: int
+    converged: bool
+    weights: np.ndarray
+    history: list = field(default_factory=list)
+
+    @property
+    def vtpv(self) -> float:
+        """Weighted sum of squared residuals ``v'Pv``."""
+        return float(np.sum(self.weights * self.residuals**2))
+
+    @property
+    def n_unknowns(self) -> int:
+        """Number of free unknowns."""
+        return int(np.count_nonzero(~self.fixed))
+
+    @property
+    def sigma0_used(self) -> float:
+        """The sigma0 that scales the covariance (a posteriori, or a priori when r = 0)."""
+        return self.sigma0 if self.redundancy > 0 else self.sigma0_prior
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the unknowns ``sigma0**2 Qxx``, shape (u, u)."""
+        return self.sigma0_used**2 * self.cofactor
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of the unknowns, shape (u,)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    @property
+    def correlation(self) -> np.ndarray:
+        """Correlation matrix of the unknowns (0 on rows of fixed unknowns), shape (u, u)."""
+        s = self.std
+        with np.errstate(invalid="ignore", divide="ignore"):
+            R = self.covariance / np.outer(s, s)
+        return np.where(np.outer(s, s) > 0, R, 0.0)
+
+    @property
+    def global_test_p(self) -> float:
+        """p-value of the global test ``v'Pv / sigma0_prior**2 ~ chi2(r)`` (nan when r = 0)."""
+        if self.redundancy <= 0:
+            return float("nan")
+        return float(scipy.stats.chi2.sf(self.vtpv / self.sigma0_prior**2, self.redundancy))
+
+    def index(self, name: str) -> int:
+        """Column of unknown ``name``."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise SoftplotError(f"no unknown named {name!r}") from None
+
+    def value(self, name: str) -> float:
+        """Estimate of unknown ``name``."""
+        return float(self.x[self.index(name)])
+
+    def std_of(self, name: str) -> float:
+        """Standard deviation of unknown ``name``."""
+        return float(self.std[self.index(name)])
+
+    def sub_covariance(self, names: Sequence[str]) -> np.ndarray:
+        """Covariance block of the unknowns ``names`` (in that order)."""
+        idx = [self.index(n) for n in names]
+        return self.covariance[np.ix_(idx, idx)]
+
+
+def _residual_statistics(J, Qxx, p, v, sigma0_prior, alpha0):
+    """qvv, redundancy numbers, w, flags for a Gauss-Markov model (J, Qxx over free unknowns)."""
+    with np.errstate(divide="ignore"):
+        qll = np.where(p > 0, 1.0 / p, np.inf)
+    h = np.einsum("ij,jk,ik->i", J, Qxx, J)
+    qvv = np.clip(qll - h, 0.0, None)
+    ri = np.clip(p * qvv, 0.0, 1.0)
+    k = critical_value(alpha0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(ri > 1e-8, v / (sigma0_prior * np.sqrt(qvv)), np.nan)
+    flagged = np.abs(np.nan_to_num(w, nan=0.0)) > k
+    return qvv, ri, w, k, flagged
+
+
+def _solve_bordered(N, b, G=None, g=None):
+    """Solve the (bordered) normal equations in unit-diagonal scaling; return dx and Qxx."""
+    u = N.shape[0]
+    d = np.sqrt(np.diag(N))
+    s = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+    Ns = N * s[:, None] * s[None, :]
+    bs = b * s
+    if G is None or G.shape[0] == 0:
+        try:
+            Qs = np.linalg.inv(Ns)
+        except np.linalg.LinAlgError as exc:  # pragma: no cover - caught by check_determined
+            raise SoftplotError("normal equations are singular") from exc
+        dx = Qs @ bs
+        return dx * s, Qs * s[:, None] * s[None, :]
+    c = G.shape[0]
+    Gs = G * s[None, :]
+    K = np.zeros((u + c, u + c))
+    K[:u, :u] = Ns
+    K[:u, u:] = Gs.T
+    K[u:, :u] = Gs
+    try:
+        Ki = np.linalg.inv(K)
+    except np.linalg.LinAlgError as exc:
+        msg = "bordered normal equations are singular (dependent constraints?)"
+        raise SoftplotError(msg) from exc
+    sol = Ki @ np.r_[bs, -g]
+    Qs = Ki[:u, :u]
+    return sol[:u] * s, Qs * s[:, None] * s[None, :]
+
+
+def least_squares(
+    fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    x0,
+    obs,
+    sigma=None,
+    *,
+    names: Sequence[str] | None = None,
+    sigma0_prior: float = 1.0,
+    fixed=None,
+    constraints: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+    max_iter: int = 50,
+    tol: float = 1e-10,
+    alpha0: float = 0.001,
+    rcond: float = DEFAULT_RCOND,
+    what: str = "adjustment",
+    require_convergence: bool = True,
+) -> Adjustment:
+    """Nonlinear weighted least squares (Gauss-Markov model, Gauss-Newton iterations).
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(x) -> (f, J)``: model values (n,) and Jacobian (n, u) at ``x``.
+    x0 : array_like, shape (u,)
+        Initial values.
+    obs : array_like, shape (n,)
+        Observations ``l``.
+    sigma : float or array_like (n,), optional
+        Standard errors of the observations (unit weights if None).
+    names : sequence of str, optional
+        Names of the unknowns (used in the singularity error and the result).
+    sigma0_prior : float
+        A priori standard error of unit weight; weights ``p = sigma0_prior**2 / sigma**2``.
+    fixed : array_like of bool (u,), optional
+        Unknowns held at their initial value (eliminated).
+    constraints : callable, optional
+        ``constraints(x) -> (g, G)``: values (c,) and Jacobian (c, u) of ``g(x) = 0``.
+    max_iter : int
+        Maximum number of Gauss-Newton iterations.
+    tol : float
+        Convergence when every step is below ``tol`` times the a priori standard deviation of
+        its unknown, or below ``1e-14`` of its magnitude.
+    alpha0 : float
+        Significance level of Baarda's w-test.
+    rcond : float
+        Rank threshold (see :func:`softplot.adjust.diagnose.check_determined`).
+    what : str
+        Name of the problem in error messages.
+    require_convergence : bool
+        Raise :class:`SoftplotError` when not converged after ``max_iter``.
+
+    Returns
+    -------
+    Adjustment
+
+    Raises
+    ------
+    UndeterminedError
+        The normal matrix at the initial values is singular or ill-conditioned; the message
+        names the unknowns that are not determined.
+    """
+    x = np.array(x0, dtype=float).ravel()
+    u = x.size
+    obs = np.asarray(obs, dtype=float).ravel()
+    n = obs.size
+    names = tuple(names) if names is not None else tuple(f"x{i}" for i in range(u))
+    if len(names) != u:
+        raise SoftplotError(f"{what}: {len(names)} names for {u} unknowns")
+    fixed = np.zeros(u, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool).ravel()
+    free = ~fixed
+    free_names = [nm for nm, f in zip(names, free, strict=True) if f]
+    p = weights_from_sigma(sigma, n, sigma0_prior)
+
+    def evaluate(xx):
+        f, J = fun(xx)
+        f = np.asarray(f, dtype=float).ravel()
+        J = np.asarray(J, dtype=float).reshape(n, u)
+        if f.size != n:
+            raise SoftplotError(f"{what}: model returned {f.size} values for {n} observations")
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(J))):
+            raise SoftplotError(f"{what}: the model is not finite at the current unknowns")
+        return f, J
+
+    f, J = evaluate(x)
+    c = 0
+    history = []
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 - `it` reported after the loop
+        Jf = J[:, free]
+        lres = obs - f
+        N = Jf.T @ (p[:, None] * Jf)
+        b = Jf.T @ (p * lres)
+        G = g = None
+        if constraints is not None:
+            g, Gfull = constraints(x)
+            g = np.asarray(g, dtype=float).ravel()
+            G = np.asarray(Gfull, dtype=float).reshape(g.size, u)[:, free]
+            c = g.size
+        if it == 1:
+            if n - free.sum() + c < 0:
+                raise SoftplotError(
+                    f"{what}: {n} observations and {c} constraints for {int(free.sum())} unknowns"
+                )
+            check_determined(N, free_names, G, rcond=rcond, what=what)
+        dx, Qxx = _solve_bordered(N, b, G, g)
+        vtpv = float(np.sum(p * lres**2))
+        t = 1.0
+        for _ in range(30):
+            xt = x.copy()
+            xt[free] += t * dx
+            try:
+                ft, Jt = evaluate(xt)
+            except SoftplotError:
+                if constraints is not None:
+                    raise
+                t *= 0.5
+                continue
+            vt = float(np.sum(p * (obs - ft) ** 2))
+            if constraints is not None or vt <= vtpv * (1 + 1e-9) + 1e-24 * n:
+                break
+            t *= 0.5
+        else:
+            raise SoftplotError(f"{what}: no step reduces the sum of squares (bad start?)")
+        x, f, J = xt, ft, Jt
+        history.append(vt)
+        step = np.abs(t * dx)
+        scale = np.sqrt(np.clip(np.diag(Qxx), 0.0, None))
+        if np.all((step <= tol * scale) | (step <= 1e-14 * np.abs(x[free]))):
+            converged = True
+            break
+    if not converged and require_convergence:
+        raise SoftplotError(f"{what}: no convergence after {max_iter} iterations")
+    # statistics at the solution
+    Jf = J[:, free]
+    N = Jf.T @ (p[:, None] * Jf)
+    G = None
+    if constraints is not None:
+        g, Gfull = constraints(x)
+        G = np.asarray(Gfull, dtype=float).reshape(np.size(g), u)[:, free]
+        c = G.shape[0]
+    _, Qf = _solve_bordered(N, np.zeros(N.shape[0]), G, np.zeros(c) if G is not None else None)
+    v = f - obs
+    r = int(n - free.sum() + c)
+    vtpv = float(np.sum(p * v**2))
+    sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
+    qvv, ri, w, k, flagged = _residual_statistics(Jf, Qf, p, v, sigma0_prior, alpha0)
+    Q = np.zeros((u, u))
+    Q[np.ix_(free, free)] = Qf
+    return Adjustment(
+        names=names,
+        x=x,
+        cofactor=Q,
+        sigma0=sigma0,
+        sigma0_prior=float(sigma0_prior),
+        redundancy=r,
+        residuals=v,
+        qvv=qvv,
+        redundancy_numbers=ri,
+        standardized=w,
+        critical_value=k,
+        alpha0=float(alpha0),
+        flagged=flagged,
+        fixed=fixed,
+        n_obs=n,
+        n_constraints=c,
+        iterations=it,
+        converged=converged,
+        weights=p,
+        history=history,
+    )
+
+
+def linear_least_squares(A, l, sigma=None, **kwargs) -> Adjustment:
+    """Linear Gauss-Markov model ``l + v = A x`` (one step; same options as least_squares).
+
+    Parameters
+    ----------
+    A : array_like, shape (n, u)
+        Design matrix.
+    l : array_like, shape (n,)
+        Observations.
+    sigma : float or array_like (n,), optional
+        Standard errors of the observations.
+    **kwargs
+        Passed to :func:`least_squares` (names, sigma0_prior, fixed, constraints, alpha0, ...).
+    """
+    A = np.asarray(A, dtype=float)
+    if A.ndim != 2:
+        raise SoftplotError(f"design matrix must be 2-D, got shape {A.shape}")
+    x0 = kwargs.pop("x0", np.zeros(A.shape[1]))
+    return least_squares(lambda x: (A @ x, A), x0, l, sigma, **kwargs)
