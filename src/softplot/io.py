@@ -46,6 +46,7 @@ extension or sample type, zero-size image, a float image with no finite pixel) r
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import struct
 from dataclasses import dataclass, field
@@ -94,6 +95,18 @@ def _one_line(exc: BaseException | str) -> str:
     """An exception message squeezed onto one line."""
     text = str(exc) if str(exc) else type(exc).__name__
     return " ".join(text.split())
+
+
+def _quiet_logger(name: str) -> None:
+    """Give a library logger a NullHandler (so Python's last-resort stderr print is not used)."""
+    log = logging.getLogger(name)
+    if not any(isinstance(h, logging.NullHandler) for h in log.handlers):
+        log.addHandler(logging.NullHandler())
+
+
+def _codec_error(exc: BaseException) -> bool:
+    """True for the error classes of imagecodecs (the compression codecs behind tifffile)."""
+    return type(exc).__module__.split(".")[0] == "imagecodecs"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -456,6 +469,9 @@ def _tiff_dpi(page) -> tuple[float, float] | None:
 def _load_tiff(p: Path, kind: str) -> Scan:
     import tifffile
 
+    # tifffile logs what it repairs or gives up on; without a handler of the application's
+    # own, Python would print those records to stderr next to our one-line error
+    _quiet_logger("tifffile")
     try:
         with tifffile.TiffFile(p) as tif:
             if len(tif.pages) == 0:
@@ -504,7 +520,7 @@ def _load_tiff(p: Path, kind: str) -> Scan:
             RuntimeError, TypeError, EOFError, NotImplementedError) as exc:
         raise ScanError(f"{p}: corrupt or truncated TIFF: {_one_line(exc)}") from None
     except Exception as exc:  # decoder errors from imagecodecs have their own classes
-        if type(exc).__module__.startswith("imagecodecs"):
+        if _codec_error(exc):
             raise ScanError(f"{p}: corrupt or truncated TIFF: {_one_line(exc)}") from None
         raise
 
@@ -719,8 +735,10 @@ def save_tiff(
             metadata=None,
         )
         os.replace(tmp, p)
-    except (OSError, ValueError, TypeError, KeyError) as exc:
+    except Exception as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        raise ScanError(f"{p}: cannot write TIFF: {_one_line(exc)}") from None
+        if isinstance(exc, (OSError, ValueError, TypeError, KeyError)) or _codec_error(exc):
+            raise ScanError(f"{p}: cannot write TIFF: {_one_line(exc)}") from None
+        raise
     return p
