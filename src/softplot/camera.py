@@ -16,6 +16,7 @@ affinity and shear ``b1 xb + b2 yb`` in x.
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -260,7 +261,7 @@ def _parse(data: dict, where: str) -> Camera:
                 raise d.fail("radius_mm", "a radial table needs at least 2 radii")
             if len(r) != len(dr):
                 raise d.fail("delta_r_um", f"has {len(dr)} values for {len(r)} radii")
-            if any(b <= a for a, b in zip(r, r[1:])) or r[0] < 0:
+            if any(b <= a for a, b in zip(r, r[1:], strict=False)) or r[0] < 0:
                 raise d.fail("radius_mm", "radii must be non-negative and increasing")
             dist = Distortion(model=model, radius_mm=r, delta_r_um=dr)
         elif model == "brown":
@@ -278,9 +279,13 @@ def _parse(data: dict, where: str) -> Camera:
         if not isinstance(f, dict):
             raise top.fail(f"fiducials[{i}]", "must be a table")
         fr = _Reader(f, where, f"fiducials[{i}].")
-        fname = str(f.get("name", "")) or None
-        if fname is None:
+        fname = f.get("name")
+        if isinstance(fname, int) and not isinstance(fname, bool):
+            fname = str(fname)  # name = 1 is read as "1"
+        if fname is None or fname == "":
             raise fr.fail("name", "missing")
+        if not isinstance(fname, str):
+            raise fr.fail("name", f"must be a string, got {fname!r}")
         if fname in seen:
             raise fr.fail("name", f"duplicate fiducial name {fname!r}")
         seen.add(fname)
@@ -335,6 +340,9 @@ def _parse(data: dict, where: str) -> Camera:
     notes = data.get("notes", [])
     if isinstance(notes, str):
         notes = [notes]
+    if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+        raise top.fail("notes", "must be a string or a list of strings")
+    description = top.string("description", "")
     return Camera(
         name=name,
         kind=kind,
@@ -348,7 +356,7 @@ def _parse(data: dict, where: str) -> Camera:
         distortion=dist,
         fiducials=tuple(fids),
         reseau=reseau,
-        description=str(data.get("description", "")),
+        description=description,
         notes=tuple(str(n) for n in notes),
         source=where,
     )
@@ -363,6 +371,8 @@ def read_certificate(path: str | Path) -> Camera:
         data = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CertificateError(f"{p}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise CertificateError(f"{p}: cannot read: {exc.strerror or exc}") from None
     return _parse(data, str(p))
 
 
@@ -403,7 +413,8 @@ def load_camera(name_or_path: str | Path | Camera) -> Camera:
 
 def _fmt(v: Any) -> str:
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # a TOML basic string: JSON escapes are valid TOML escapes; DEL must be escaped too
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -443,7 +454,10 @@ def to_toml(cam: Camera) -> str:
     ]
     d = cam.distortion
     if d.model == "radial-table":
-        out += [f"radius_mm = {_fmt(list(d.radius_mm))}", f"delta_r_um = {_fmt(list(d.delta_r_um))}"]
+        out += [
+            f"radius_mm = {_fmt(list(d.radius_mm))}",
+            f"delta_r_um = {_fmt(list(d.delta_r_um))}",
+        ]
     elif d.model == "brown":
         out += [f"{k} = {_fmt(getattr(d, k))}" for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2")]
     for f in cam.fiducials:
@@ -504,11 +518,16 @@ def describe(cam: Camera) -> str:
     d = cam.distortion
     if d.model == "radial-table":
         lines.append("  distortion        radial table (r mm -> delta-r um):")
-        lines += [f"      {r:8.2f} {dr:+8.2f}" for r, dr in zip(d.radius_mm, d.delta_r_um)]
+        lines += [
+            f"      {r:8.2f} {dr:+8.2f}"
+            for r, dr in zip(d.radius_mm, d.delta_r_um, strict=True)
+        ]
     elif d.model == "brown":
         lines.append(
             "  distortion        Brown: "
-            + ", ".join(f"{k}={getattr(d, k):.6g}" for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2"))
+            + ", ".join(
+                f"{k}={getattr(d, k):.6g}" for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2")
+            )
         )
     else:
         lines.append("  distortion        none")
