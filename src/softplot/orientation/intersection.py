@@ -1,0 +1,314 @@
+"""Space intersection: object points from two or more rays of oriented photos.
+
+Vectorised over points: every object point is its own small Gauss-Markov problem (3 unknowns,
+``2k`` photo observations for ``k`` rays); all points are solved together with batched 3x3
+normal equations - no per-point Python loop.
+
+Start: the point nearest to all rays in the least-squares sense,
+``sum_k (I - d_k d_k') X = sum_k (I - d_k d_k') X0_k`` (``d_k`` unit ray directions, object
+frame). Then Gauss-Newton on the collinearity equations (photo residuals, weights from the
+photo standard errors) until the steps vanish.
+
+Precision (``docs/orientation.md``): per point ``Qxx = N^-1``, redundancy ``2k - 3`` and its own
+``sigma0``; the reported covariance is ``s0^2 Qxx`` with the *pooled* ``s0 = sqrt(sum v'Pv / sum
+r)`` of all points (photos and measuring conditions are shared; a two-ray point alone has one
+degree of freedom). ``covariance="point"`` uses each point's own sigma0, ``"prior"`` the a
+priori sigma.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softplot.adjust import UndeterminedError, critical_value
+from softplot.errors import SoftplotError
+from softplot.geometry.collinearity import camera_coordinates, image_rays, project_jacobian
+from softplot.geometry.rotation import rotation_matrix
+
+__all__ = ["Intersection", "intersect", "intersect_pair"]
+
+
+@dataclass
+class Intersection:
+    """Result of :func:`intersect` (P object points from K photo observations).
+
+    Attributes
+    ----------
+    XYZ : ndarray, shape (P, 3)
+        Object coordinates.
+    cofactor : ndarray, shape (P, 3, 3)
+        ``N^-1`` per point (unit: object^2 / (photo mm)^2 times sigma0_prior^2).
+    covariance : ndarray, shape (P, 3, 3)
+        Covariance per point (see the module docstring for the sigma0 used).
+    sigma0 : ndarray, shape (P,)
+        Per-point a posteriori sigma0, photo mm (nan with redundancy 0).
+    sigma0_pooled : float
+        Pooled sigma0 of all points.
+    redundancy : ndarray of int, shape (P,)
+        ``2k - 3``.
+    n_rays : ndarray of int, shape (P,)
+    rms : ndarray, shape (P,)
+        RMS of the photo residuals of each point, mm.
+    residuals : ndarray, shape (K, 2)
+        Photo residuals of every observation (projected minus observed), mm.
+    standardized : ndarray, shape (K, 2)
+        Baarda's w of every photo coordinate (using the a priori sigma).
+    flagged : ndarray of bool, shape (P,)
+        Points with an observation beyond the critical value.
+    iterations : int
+    """
+
+    XYZ: np.ndarray
+    cofactor: np.ndarray
+    covariance: np.ndarray
+    sigma0: np.ndarray
+    sigma0_pooled: float
+    redundancy: np.ndarray
+    n_rays: np.ndarray
+    rms: np.ndarray
+    residuals: np.ndarray
+    standardized: np.ndarray
+    flagged: np.ndarray
+    iterations: int
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of X, Y, Z per point, shape (P, 3)."""
+        return np.sqrt(np.clip(np.einsum("pii->pi", self.covariance), 0.0, None))
+
+
+def _batched_solve(N, b):
+    return np.linalg.solve(N, b[..., None])[..., 0]
+
+
+def intersect(
+    xy,
+    point,
+    photo,
+    X0,
+    angles,
+    c,
+    x0=0.0,
+    y0=0.0,
+    *,
+    sigma=1.0,
+    n_points: int | None = None,
+    point_names=None,
+    covariance: str = "pooled",
+    alpha0: float = 0.001,
+    max_iter: int = 20,
+    tol: float = 1e-12,
+) -> Intersection:
+    """Intersect rays of oriented photos (least squares, vectorised over points).
+
+    Parameters
+    ----------
+    xy : array_like, shape (K, 2)
+        Photo coordinates of every observation, mm.
+    point : array_like of int, shape (K,)
+        Object point index (0..P-1) of every observation.
+    photo : array_like of int, shape (K,)
+        Photo index (0..F-1) of every observation.
+    X0 : array_like, shape (F, 3)
+        Projection centres, object frame.
+    angles : array_like, shape (F, 3)
+        ``omega, phi, kappa`` of every photo, radians.
+    c, x0, y0 : float or array_like (F,)
+        Interior orientation of every photo, mm.
+    sigma : float or array_like (K,) or (K, 2)
+        Standard error of the photo coordinates, mm (the median is the a priori sigma0).
+    n_points : int, optional
+        Number of object points P (default ``max(point) + 1``).
+    point_names : sequence of str, optional
+        Names for error messages.
+    covariance : {"pooled", "point", "prior"}
+        Which sigma0 scales the reported covariance.
+    alpha0 : float
+        Significance level of data snooping.
+    max_iter : int
+    tol : float
+        Convergence when every coordinate step is below ``tol`` times the coordinate magnitude
+        (plus 1).
+
+    Returns
+    -------
+    Intersection
+
+    Raises
+    ------
+    UndeterminedError
+        A point with fewer than two rays or (nearly) parallel rays; the message names the
+        point's X, Y, Z.
+    """
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    K = len(xy)
+    point = np.asarray(point, dtype=int).ravel()
+    photo = np.asarray(photo, dtype=int).ravel()
+    X0 = np.asarray(X0, dtype=float).reshape(-1, 3)
+    angles = np.asarray(angles, dtype=float).reshape(-1, 3)
+    F = len(X0)
+    if point.size != K or photo.size != K:
+        raise SoftplotError("intersection: point and photo indices must match the observations")
+    if angles.shape[0] != F:
+        raise SoftplotError("intersection: X0 and angles must describe the same photos")
+    if K == 0:
+        raise SoftplotError("intersection: no observations")
+    if photo.min() < 0 or photo.max() >= F:
+        raise SoftplotError("intersection: photo index out of range")
+    if point.min() < 0:
+        raise SoftplotError("intersection: negative point index")
+    if not np.all(np.isfinite(xy)):
+        raise SoftplotError("intersection: photo coordinates must be finite")
+    if covariance not in ("pooled", "point", "prior"):
+        raise SoftplotError(f"intersection: unknown covariance mode {covariance!r}")
+    P = int(point.max()) + 1 if n_points is None else int(n_points)
+    names = list(point_names) if point_names is not None else [str(i) for i in range(P)]
+    cF = np.broadcast_to(np.asarray(c, dtype=float), (F,))
+    x0F = np.broadcast_to(np.asarray(x0, dtype=float), (F,))
+    y0F = np.broadcast_to(np.asarray(y0, dtype=float), (F,))
+    sig = np.asarray(sigma, dtype=float)
+    if sig.ndim == 0:
+        sig = np.full((K, 2), float(sig))
+    elif sig.ndim == 1:
+        sig = np.repeat(sig[:, None], 2, axis=1)
+    if sig.shape != (K, 2) or np.any(~(sig > 0)):
+        raise SoftplotError("intersection: sigma must be positive, a number or (K,) or (K,2)")
+    s_prior = float(np.median(sig))
+    p = (s_prior / sig) ** 2
+    Ms = rotation_matrix(angles[:, 0], angles[:, 1], angles[:, 2])
+    Mk = Ms[photo]
+    Ck = X0[photo]
+    nr = np.bincount(point, minlength=P)
+
+    def undetermined(bad):
+        shown = ", ".join(names[i] for i in bad[:5]) + (" ..." if len(bad) > 5 else "")
+        raise UndeterminedError(
+            f"intersection: X, Y, Z of point(s) {shown} not determined "
+            "(fewer than 2 rays or parallel rays)",
+            [f"{a}_{names[i]}" for i in bad for a in "XYZ"],
+        )
+
+    if np.any(nr < 2):
+        undetermined(list(np.nonzero(nr < 2)[0]))
+    # linear start: nearest point to the rays
+    d = image_rays(xy, Mk, cF[photo], x0F[photo], y0F[photo])
+    A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    NA = np.zeros((P, 3, 3))
+    bA = np.zeros((P, 3))
+    np.add.at(NA, point, A)
+    np.add.at(bA, point, np.einsum("kij,kj->ki", A, Ck))
+    ev = np.linalg.eigvalsh(NA)
+    bad = np.nonzero(ev[:, 0] <= 1e-10 * ev[:, -1])[0]
+    if bad.size:
+        undetermined(list(bad))
+    XYZ = _batched_solve(NA, bA)
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007
+        f, J = project_jacobian(XYZ[point], Ck, angles[photo], cF[photo], x0F[photo], y0F[photo])
+        Jx = J[:, :, 6:9]  # (K, 2, 3)
+        l = xy - f
+        N = np.zeros((P, 3, 3))
+        b = np.zeros((P, 3))
+        np.add.at(N, point, np.einsum("kai,ka,kaj->kij", Jx, p, Jx))
+        np.add.at(b, point, np.einsum("kai,ka,ka->ki", Jx, p, l))
+        dX = _batched_solve(N, b)
+        XYZ = XYZ + dX
+        if np.all(np.abs(dX) <= tol * (1.0 + np.abs(XYZ))):
+            break
+    f, J = project_jacobian(XYZ[point], Ck, angles[photo], cF[photo], x0F[photo], y0F[photo])
+    Jx = J[:, :, 6:9]
+    N = np.zeros((P, 3, 3))
+    np.add.at(N, point, np.einsum("kai,ka,kaj->kij", Jx, p, Jx))
+    ev = np.linalg.eigvalsh(
+        N
+        * (1.0 / np.sqrt(np.einsum("pii->pi", N)))[:, :, None]
+        * (1.0 / np.sqrt(np.einsum("pii->pi", N)))[:, None, :]
+    )
+    bad = np.nonzero(ev[:, 0] <= 1e-12 * ev[:, -1])[0]
+    if bad.size:
+        undetermined(list(bad))
+    Q = np.linalg.inv(N)
+    u = camera_coordinates(XYZ[point], Ck, Mk)
+    if np.any(u[:, 2] >= 0):
+        behind = sorted(set(point[u[:, 2] >= 0].tolist()))
+        raise SoftplotError(
+            "intersection: point(s) "
+            + ", ".join(names[i] for i in behind[:5])
+            + " intersect behind a camera"
+        )
+    v = f - xy
+    vpv = np.bincount(point, weights=np.sum(p * v**2, axis=1), minlength=P)
+    r = 2 * nr - 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s0 = np.where(r > 0, np.sqrt(vpv / np.where(r > 0, r, 1)), np.nan)
+    pooled = float(np.sqrt(vpv.sum() / r.sum())) if r.sum() > 0 else float("nan")
+    if covariance == "pooled":
+        scale = np.full(P, pooled if np.isfinite(pooled) else s_prior)
+    elif covariance == "point":
+        scale = np.where(np.isfinite(s0), s0, s_prior)
+    else:
+        scale = np.full(P, s_prior)
+    cov = Q * (scale**2)[:, None, None]
+    # residual cofactors: qvv = 1/p - J Q J'
+    h = np.einsum("kai,kij,kaj->ka", Jx, Q[point], Jx)
+    qvv = np.clip(1.0 / p - h, 0.0, None)
+    ri = p * qvv
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(ri > 1e-8, v / (s_prior * np.sqrt(qvv)), np.nan)
+    k = critical_value(alpha0)
+    fl_obs = np.abs(np.nan_to_num(w)) > k
+    flagged = np.bincount(point, weights=fl_obs.any(axis=1).astype(float), minlength=P) > 0
+    rms = np.sqrt(np.bincount(point, weights=np.sum(v**2, axis=1), minlength=P) / (2 * nr))
+    return Intersection(
+        XYZ=XYZ,
+        cofactor=Q,
+        covariance=cov,
+        sigma0=s0,
+        sigma0_pooled=pooled,
+        redundancy=r,
+        n_rays=nr,
+        rms=rms,
+        residuals=v,
+        standardized=w,
+        flagged=flagged,
+        iterations=it,
+    )
+
+
+def intersect_pair(xy1, xy2, X01, angles1, X02, angles2, c1, c2=None, *, sigma=1.0, **kwargs):
+    """Intersect the rays of N homologous points of two photos (convenience wrapper).
+
+    Parameters
+    ----------
+    xy1, xy2 : array_like, shape (N, 2)
+        Photo coordinates in photos 1 and 2, mm.
+    X01, X02 : array_like, shape (3,)
+        Projection centres.
+    angles1, angles2 : array_like, shape (3,)
+        ``omega, phi, kappa`` of the photos, radians.
+    c1, c2 : float
+        Principal distances (``c2 = c1`` by default).
+    sigma : float
+        Photo standard error, mm.
+    **kwargs
+        Passed to :func:`intersect`.
+    """
+    xy1 = np.asarray(xy1, dtype=float).reshape(-1, 2)
+    xy2 = np.asarray(xy2, dtype=float).reshape(-1, 2)
+    n = len(xy1)
+    if xy2.shape != xy1.shape:
+        raise SoftplotError("intersection: the two photos need the same number of points")
+    idx = np.arange(n)
+    return intersect(
+        np.r_[xy1, xy2],
+        np.r_[idx, idx],
+        np.r_[np.zeros(n, int), np.ones(n, int)],
+        np.vstack([X01, X02]),
+        np.vstack([angles1, angles2]),
+        np.array([c1, c1 if c2 is None else c2], dtype=float),
+        sigma=sigma,
+        n_points=n,
+        **kwargs,
+    )

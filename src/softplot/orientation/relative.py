@@ -1,0 +1,371 @@
+"""Relative orientation of a stereo pair: dependent and independent, coplanarity condition.
+
+Model frame (``docs/orientation.md``): right-handed, the base ``b = (bx, by, bz)``; the left
+projection centre at the origin.
+
+* dependent pairs (``mode="dependent"``): left photo unrotated (model frame = left photo
+  frame), unknowns ``by, bz, omega2, phi2, kappa2`` with ``bx`` fixed;
+* independent pairs (``mode="independent"``): base along the model x axis ``b = (bx, 0, 0)``,
+  ``omega1 = 0``, unknowns ``phi1, kappa1, omega2, phi2, kappa2``.
+
+Coplanarity condition of every point, with ``r_k = M_k' (x_k - x0, y_k - y0, -c)``::
+
+    F = b . (r1 x r2) = 0
+
+adjusted in the Gauss-Helmert model (:func:`softplot.adjust.gauss_helmert`): the photo
+coordinates of both photos are the observations, so the converged solution minimises the
+weighted sum of squared photo residuals subject to exact ray intersection (the maximum
+likelihood estimate), redundancy ``n - 5``, sigma0 in photo mm.
+
+Start: the essential matrix (OpenCV ``findEssentialMat`` on normalised coordinates, LMedS,
+then ``recoverPose`` for the cheirality), converted from OpenCV axes (x right, y down, z
+forward) with ``C = diag(1, -1, -1)``: ``M2 = C R C``, ``b = -C R' t`` scaled to ``bx``.
+
+y-parallax: both rays are turned into the *base frame* (x along ``b``, y perpendicular to ``b``
+in the plane of ``b`` and the model y axis) and projected with ``c``: the difference
+``py = y'_left - y'_right`` (photo mm) is zero exactly when the rays intersect. Model points
+come from the least-squares intersection of the observed rays
+(:func:`softplot.orientation.intersection.intersect_pair`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.sparse
+
+from softplot.adjust import Adjustment, UndeterminedError, gauss_helmert
+from softplot.errors import SoftplotError
+from softplot.geometry.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
+from softplot.orientation.intersection import Intersection, intersect_pair
+
+__all__ = ["RelativeOrientation", "relative_orientation", "essential_start", "y_parallax"]
+
+PARAMS = ("bx", "by", "bz", "omega1", "phi1", "kappa1", "omega2", "phi2", "kappa2")
+FREE = {
+    "dependent": ("by", "bz", "omega2", "phi2", "kappa2"),
+    "independent": ("phi1", "kappa1", "omega2", "phi2", "kappa2"),
+}
+_C = np.diag([1.0, -1.0, -1.0])
+
+
+def _photo_vectors(xy, c, x0, y0):
+    return np.c_[xy[:, 0] - x0, xy[:, 1] - y0, np.full(len(xy), -float(c))]
+
+
+def essential_start(xy1, xy2, c, x0=0.0, y0=0.0, bx: float = 1.0):
+    """Dependent relative orientation from the essential matrix.
+
+    Parameters
+    ----------
+    xy1, xy2 : ndarray, shape (n, 2)
+        Photo coordinates in the left and right photo, mm (n >= 5).
+    c, x0, y0 : float
+        Interior orientation, mm (both photos).
+    bx : float
+        Base component to scale to.
+
+    Returns
+    -------
+    b : ndarray, shape (3,)
+        Base in the left photo frame, ``b[0] = bx``.
+    angles2 : ndarray, shape (3,)
+        ``omega2, phi2, kappa2`` of the right photo relative to the left one, radians.
+    """
+    p1 = np.c_[(xy1[:, 0] - x0) / c, -(xy1[:, 1] - y0) / c].astype(np.float64)
+    p2 = np.c_[(xy2[:, 0] - x0) / c, -(xy2[:, 1] - y0) / c].astype(np.float64)
+    K = np.eye(3)
+    try:
+        E, _ = cv2.findEssentialMat(p1, p2, K, method=cv2.LMEDS, prob=0.999)
+    except cv2.error as exc:
+        raise SoftplotError(f"relative orientation: essential matrix failed ({exc.err})") from None
+    if E is None or E.shape[0] < 3:
+        raise SoftplotError("relative orientation: no essential matrix (degenerate points?)")
+    best = None
+    for i in range(E.shape[0] // 3):
+        Ei = E[3 * i : 3 * i + 3]
+        ngood, R, t, _ = cv2.recoverPose(Ei, p1, p2, K)
+        resid = np.abs(
+            np.einsum("ni,ij,nj->n", np.c_[p2, np.ones(len(p2))], Ei, np.c_[p1, np.ones(len(p1))])
+        )
+        score = (ngood, -np.median(resid))
+        if best is None or score > best[0]:
+            best = (score, R, t)
+    _, R, t = best
+    M2 = _C @ R @ _C
+    b = -_C @ R.T @ t.ravel()
+    if abs(b[0]) < 1e-6 * np.linalg.norm(b):
+        raise SoftplotError("relative orientation: the base has no x component (bx ~ 0)")
+    b = b * (bx / b[0])
+    return b, np.array(angles_from_matrix(M2))
+
+
+def y_parallax(xy1, xy2, b, angles1, angles2, c, x0=0.0, y0=0.0):
+    """y-parallax of every point in the base-normalised images, photo mm.
+
+    Parameters
+    ----------
+    xy1, xy2 : ndarray, shape (n, 2)
+        Photo coordinates, mm.
+    b : array_like, shape (3,)
+        Base, model frame.
+    angles1, angles2 : array_like, shape (3,)
+        Rotations of the photos, radians.
+    c, x0, y0 : float
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``py = y'_left - y'_right``.
+    """
+    b = np.asarray(b, dtype=float)
+    e1 = b / np.linalg.norm(b)
+    Y = np.array([0.0, 1.0, 0.0])
+    e2 = Y - (Y @ e1) * e1
+    e2 /= np.linalg.norm(e2)
+    Rb = np.vstack([e1, e2, np.cross(e1, e2)])
+    q1 = _photo_vectors(xy1, c, x0, y0) @ rotation_matrix(*angles1) @ Rb.T
+    q2 = _photo_vectors(xy2, c, x0, y0) @ rotation_matrix(*angles2) @ Rb.T
+    return -c * q1[:, 1] / q1[:, 2] + c * q2[:, 1] / q2[:, 2]
+
+
+@dataclass
+class RelativeOrientation:
+    """Result of :func:`relative_orientation`.
+
+    Attributes
+    ----------
+    mode : str
+        "dependent" or "independent".
+    params : ndarray, shape (9,)
+        :data:`PARAMS`: ``bx, by, bz`` (model units) and the rotations of both photos
+        (radians).
+    adjustment : Adjustment
+        Gauss-Helmert adjustment over :data:`PARAMS` (the four fixed ones have zero
+        covariance); residuals are the photo corrections ``[x1, y1, x2, y2]`` per point.
+    points : Intersection
+        Model points by intersection.
+    py : ndarray, shape (n,)
+        y-parallax of every point, photo mm.
+    flagged : ndarray of bool, shape (n,)
+        Points whose condition fails Baarda's test.
+    names : tuple of str
+    c, x0, y0 : float
+    """
+
+    mode: str
+    params: np.ndarray
+    adjustment: Adjustment
+    points: Intersection
+    py: np.ndarray
+    flagged: np.ndarray
+    names: tuple
+    c: float
+    x0: float
+    y0: float
+
+    def value(self, name: str) -> float:
+        return float(self.params[PARAMS.index(name)])
+
+    @property
+    def base(self) -> np.ndarray:
+        return self.params[0:3].copy()
+
+    @property
+    def angles1(self) -> np.ndarray:
+        return self.params[3:6].copy()
+
+    @property
+    def angles2(self) -> np.ndarray:
+        return self.params[6:9].copy()
+
+    @property
+    def free(self) -> tuple:
+        """Names of the five unknowns."""
+        return FREE[self.mode]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """5x5 covariance of :attr:`free`."""
+        return self.adjustment.sub_covariance(self.free)
+
+    @property
+    def std(self) -> dict:
+        """Standard deviation of every one of the nine parameters (0 for fixed ones)."""
+        return dict(zip(PARAMS, self.adjustment.std, strict=True))
+
+    @property
+    def sigma0(self) -> float:
+        return self.adjustment.sigma0
+
+    @property
+    def redundancy(self) -> int:
+        return self.adjustment.redundancy
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """Photo corrections ``vx1, vy1, vx2, vy2`` per point, shape (n, 4), mm."""
+        return self.adjustment.residuals.reshape(-1, 4)
+
+
+def _dependent_to_independent(b, angles2):
+    """Dependent (left frame) -> independent parameters (phi1, kappa1, omega2, phi2, kappa2)."""
+    nb = np.linalg.norm(b)
+    kappa1 = np.arctan2(-b[1], b[0])
+    phi1 = np.arcsin(np.clip(b[2] / nb, -1, 1))
+    M1 = rotation_matrix(0.0, phi1, kappa1)
+    M2 = rotation_matrix(*angles2) @ M1
+    return np.array([phi1, kappa1]), np.array(angles_from_matrix(M2))
+
+
+def relative_orientation(
+    xy1,
+    xy2,
+    c: float,
+    x0: float = 0.0,
+    y0: float = 0.0,
+    *,
+    bx: float = 1.0,
+    mode: str = "dependent",
+    sigma=0.005,
+    names=None,
+    start=None,
+    alpha0: float = 0.001,
+) -> RelativeOrientation:
+    """Relative orientation of two photos by the coplanarity condition (Gauss-Helmert).
+
+    Parameters
+    ----------
+    xy1, xy2 : array_like, shape (n, 2)
+        Photo coordinates of homologous points in the left and right photo, mm, n >= 5
+        (reduced to the principal point when x0 = y0 = 0).
+    c, x0, y0 : float
+        Interior orientation (both photos), mm.
+    bx : float
+        Fixed base component (the model scale), model units; its sign says on which side
+        the right photo is.
+    mode : {"dependent", "independent"}
+    sigma : float or array_like (n, 4)
+        Standard error of the photo coordinates, mm (the median is the a priori sigma0).
+    names : sequence of str, optional
+    start : array_like (9,), optional
+        Initial :data:`PARAMS` (skips the essential-matrix start).
+    alpha0 : float
+
+    Returns
+    -------
+    RelativeOrientation
+
+    Raises
+    ------
+    UndeterminedError
+        Fewer than 5 points or a degenerate configuration; the message names the unknowns.
+    """
+    xy1 = np.asarray(xy1, dtype=float)
+    xy2 = np.asarray(xy2, dtype=float)
+    if xy1.ndim != 2 or xy1.shape[1] != 2 or xy2.shape != xy1.shape:
+        raise SoftplotError(
+            f"relative orientation: left and right points must both be (n,2), got "
+            f"{xy1.shape} and {xy2.shape}"
+        )
+    if not (np.all(np.isfinite(xy1)) and np.all(np.isfinite(xy2))):
+        raise SoftplotError("relative orientation: photo coordinates must be finite")
+    if mode not in FREE:
+        raise SoftplotError(f"relative orientation: unknown mode {mode!r} (dependent|independent)")
+    if not c > 0:
+        raise SoftplotError(f"relative orientation: principal distance must be > 0, got {c}")
+    if bx == 0 or not np.isfinite(bx):
+        raise SoftplotError("relative orientation: bx must be finite and non-zero")
+    n = len(xy1)
+    free = FREE[mode]
+    if n < 5:
+        raise UndeterminedError(
+            f"relative orientation needs >= 5 points, got {n}: not determined: " + ", ".join(free),
+            free,
+        )
+    names = tuple(names) if names is not None else tuple(str(i) for i in range(n))
+    if start is None:
+        b, ang2 = essential_start(xy1, xy2, c, x0, y0, bx)
+        x_start = np.zeros(9)
+        if mode == "dependent":
+            x_start[0:3] = b
+            x_start[6:9] = ang2
+        else:
+            a1, a2 = _dependent_to_independent(b, ang2)
+            x_start[0] = bx
+            x_start[4:6] = a1
+            x_start[6:9] = a2
+    else:
+        x_start = np.asarray(start, dtype=float).ravel().copy()
+        if x_start.size != 9:
+            raise SoftplotError("relative orientation: start must have the 9 PARAMS")
+        x_start[0] = bx
+    fixed = np.array([p not in free for p in PARAMS])
+    obs = np.c_[xy1, xy2].ravel()
+    rows = np.repeat(np.arange(n), 4)
+    cols = np.arange(4 * n)
+
+    def fun(x, lh):
+        L = lh.reshape(n, 4)
+        p1 = _photo_vectors(L[:, :2], c, x0, y0)
+        p2 = _photo_vectors(L[:, 2:], c, x0, y0)
+        b = x[0:3]
+        M1 = rotation_matrix(*x[3:6])
+        M2 = rotation_matrix(*x[6:9])
+        dM1 = rotation_derivatives(*x[3:6])
+        dM2 = rotation_derivatives(*x[6:9])
+        r1 = p1 @ M1
+        r2 = p2 @ M2
+        cr = np.cross(r1, r2)
+        F = cr @ b
+        A = np.zeros((n, 9))
+        A[:, 0:3] = cr
+        for i in range(3):
+            A[:, 3 + i] = np.cross(p1 @ dM1[i], r2) @ b
+            A[:, 6 + i] = np.cross(r1, p2 @ dM2[i]) @ b
+        g1 = np.cross(r2, b) @ M1.T  # dF/dp1 = M1 (r2 x b)
+        g2 = np.cross(b, r1) @ M2.T  # dF/dp2 = M2 (b x r1)
+        vals = np.c_[g1[:, :2], g2[:, :2]].ravel()
+        B = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, 4 * n))
+        return F, A, B
+
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4)).ravel()
+    adj = gauss_helmert(
+        fun,
+        x_start,
+        obs,
+        sig,
+        names=PARAMS,
+        sigma0_prior=float(np.median(sig)),
+        fixed=fixed,
+        alpha0=alpha0,
+        what=f"relative orientation ({mode})",
+    )
+    x = adj.x
+    pts = intersect_pair(
+        xy1,
+        xy2,
+        np.zeros(3),
+        x[3:6],
+        x[0:3],
+        x[6:9],
+        c,
+        sigma=float(np.median(sig)),
+        point_names=names,
+    )
+    py = y_parallax(xy1, xy2, x[0:3], x[3:6], x[6:9], c, x0, y0)
+    flagged = adj.flagged.reshape(n, 4).any(axis=1)
+    return RelativeOrientation(
+        mode=mode,
+        params=x.copy(),
+        adjustment=adj,
+        points=pts,
+        py=py,
+        flagged=flagged,
+        names=names,
+        c=float(c),
+        x0=float(x0),
+        y0=float(y0),
+    )
