@@ -191,6 +191,16 @@ def test_tiff_miniswhite_palette_bilevel_float(tmp_path):
     np.testing.assert_array_equal(s.grey(), f)  # NaN stays NaN, values as stored
 
 
+def test_tiff_12_bit_packed_scaled_by_4095(tmp_path):
+    a = (pattern(np.uint16) >> 4).astype(np.uint16)  # 0 ... 4095
+    p = tmp_path / "b12.tif"
+    tifffile.imwrite(p, a, bitspersample=12, metadata=None)
+    s = load_scan(p)
+    assert s.bit_depth == 12 and s.full_scale == 4095.0
+    np.testing.assert_array_equal(s.data, a)
+    np.testing.assert_allclose(s.grey(), a / 4095.0, atol=1e-7)
+
+
 def test_gigapixel_tiff_is_not_copied(tmp_path):
     """A 1-gigapixel uncompressed TIFF (sparse file) loads without allocating its pixels."""
     p = tmp_path / "giga.tif"
@@ -215,7 +225,8 @@ def test_grey_window_blocks_match_whole(tmp_path, monkeypatch):
     win = (slice(5, 40), slice(3, 61, 2))
     np.testing.assert_array_equal(s.grey(win), whole[win])
     np.testing.assert_array_equal(s.grey(), whole)
-    assert s.pixels is s.pixels  # cached
+    assert s.pixels is s.pixels  # cached, read-only, and grey() still gives a fresh array
+    assert not s.pixels.flags.writeable and s.grey().flags.writeable
     np.testing.assert_array_equal(s.pixels, whole)
     np.testing.assert_allclose(s.colour(win), a[win] / 65535.0, atol=1e-7)
     with pytest.raises(TypeError):
@@ -453,6 +464,9 @@ def make_bad(kind: str, d: Path) -> tuple[Path, str]:
         return d / "zero.tif", "zero-size"
     if kind == "nan-only":
         return save_tiff(d / "nan.tif", np.full((8, 8), np.nan, np.float32)), "no finite pixel"
+    if kind == "cmyk":
+        tifffile.imwrite(d / "cmyk.tif", np.zeros((8, 8, 4), np.uint8), photometric="separated")
+        return d / "cmyk.tif", "unsupported TIFF photometric interpretation SEPARATED"
     if kind == "signed":
         tifffile.imwrite(d / "signed.tif", a.astype(np.int16))
         return d / "signed.tif", "signed"
@@ -463,7 +477,7 @@ BAD = [
     "missing", "directory", "empty", "unsupported", "no-extension", "garbage-tif",
     "garbage-png", "garbage-jpg", "garbage-nef", "truncated-tiff", "truncated-lzw-tiff",
     "truncated-header-tiff", "truncated-png", "truncated-jpeg", "truncated-dng", "zero-size",
-    "nan-only", "signed",
+    "nan-only", "signed", "cmyk",
 ]
 
 

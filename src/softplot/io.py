@@ -216,9 +216,12 @@ class Scan:
         """The whole image as float32 grey in [0, 1], shape (H, W), pixel system; cached.
 
         This allocates 4 bytes per pixel; on a huge scan prefer :meth:`grey` with a window.
+        The cached array is read-only (it is shared); ``.copy()`` it to change it.
         """
         if self._pixels is None:
-            self._pixels = self.grey()
+            g = self.grey()
+            g.flags.writeable = False  # shared by every caller: copy before changing it
+            self._pixels = g
         return self._pixels
 
     def grey(self, window: tuple[slice, slice] | None = None) -> np.ndarray:
@@ -236,8 +239,6 @@ class Scan:
             float32, shape (h, w): BT.601 luminance for RGB(A), the grey channel otherwise,
             inverted for ``MinIsWhite`` data.
         """
-        if window is None and self._pixels is not None:
-            return self._pixels
         block = self.data[_window(window)]
         out = np.empty(block.shape[:2], np.float32)
         scale = np.float32(1.0 / self.full_scale)
@@ -285,7 +286,7 @@ class Scan:
     def summary(self) -> str:
         """One line: size, bit depth, channels, dpi, format (what ``softplot info`` prints)."""
         names = {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}
-        kind = "float" if self.data.dtype.kind == "f" else "bit"
+        kind = "bit float" if self.data.dtype.kind == "f" else "bit"
         dpi = f"{self.dpi:g} dpi" if self.dpi is not None else "dpi unknown"
         if self.dpi_xy is not None and self.dpi_xy[0] != self.dpi_xy[1]:
             dpi = f"{self.dpi_xy[0]:g} x {self.dpi_xy[1]:g} dpi"
