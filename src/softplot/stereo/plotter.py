@@ -1,0 +1,314 @@
+"""The plotter loop: operator input in, DX/DY commands out, features recorded.
+
+As on the STEREOBIT/20 the operator moves the main carriage (X, Y) over the *right* plate and,
+in single-point mode, turns the x-parallax handwheel; every cycle the computer works out the
+left-plate position that puts the floating mark on the model and commands the secondary
+carriage (DX, DY) of the left plate through the :class:`~softplot.motors.base.Motors`
+interface. All carriage values are **instrument (film) mm**: the right film point under the
+mark is ``(X, Y)``, the left one ``(X + DX, Y + DY)``. Each photo's film correction
+(:attr:`OrientedPhoto.to_photo`) maps them to photo mm for the stereo model.
+
+Modes (:data:`MODES`):
+
+``single``  handwheel ``px`` (= DX, the x-parallax) given; DY is computed so that the
+            y-parallax vanishes (STEREOBIT a); object point from the two rays.
+``contour`` the mark is held on Z = ``height``: DX and DY both computed (STEREOBIT b).
+``free``    DX, DY are the operator's (handwheels); object point and residual y-parallax.
+``drive-to`` :meth:`Plotter.drive_to` puts the mark on a given object point.
+
+The computed object point is exact (to rounding) for the *computed* left position; the
+motors then place the left plate on their step grid (0.01 mm by default, finer on screen).
+With identity film corrections a cycle is pure-Python scalar arithmetic
+(:class:`~softplot.stereo.model.FastStereo`); with corrections, two small numpy calls.
+
+Recording: :meth:`Plotter.record_point` (spot height), :meth:`Plotter.begin` /
+:meth:`Plotter.vertex` / :meth:`Plotter.end` (3D lines and contours), each with a feature
+code. Finished features go to ``on_feature`` (the session journal fsyncs them).
+
+A motor fault (:class:`~softplot.motors.base.MotorFault`) stops the motors, is reported to
+``on_fault`` and raised as :class:`PlotterHalted` with a one-line message; the recorded
+features are untouched. :meth:`Plotter.recover` clears the halt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from softplot.errors import SoftplotError
+from softplot.export.features import Feature
+from softplot.motors.base import MotorFault, MotorLimitError, Motors
+from softplot.stereo.model import StereoModel
+
+__all__ = ["Plotter", "Cycle", "PlotterHalted", "MODES"]
+
+MODES = ("single", "contour", "free", "drive-to")
+
+
+class PlotterHalted(SoftplotError):
+    """A motor fault stopped the plotter; the session is kept."""
+
+
+class Cycle:
+    """The state of the floating mark after one cycle (instrument mm, photo mm, object)."""
+
+    __slots__ = ("X", "Y", "DX", "DY", "x1", "y1", "x2", "y2", "XYZ", "py", "in_travel")
+
+    def __init__(self, X, Y, DX, DY, x1, y1, x2, y2, XYZ, py, in_travel=True):
+        self.X, self.Y, self.DX, self.DY = X, Y, DX, DY
+        self.x1, self.y1, self.x2, self.y2 = x1, y1, x2, y2
+        self.XYZ = XYZ
+        self.py = py
+        self.in_travel = in_travel
+
+    def as_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__slots__}
+
+
+class Plotter:
+    """Real-time restitution loop over a stereo model and a motor set.
+
+    Parameters
+    ----------
+    model : StereoModel
+        Oriented left (1) and right (2) photos with their film corrections.
+    motors : Motors
+        Secondary carriage of the left plate (virtual or instrument).
+    mode : {"single", "contour", "free"}
+    height : float, optional
+        Contour height Qc (object units), required in contour mode.
+    on_feature : callable, optional
+        Called with every finished :class:`~softplot.export.features.Feature`.
+    on_fault : callable, optional
+        Called with the fault message when the motors fail.
+    """
+
+    def __init__(
+        self,
+        model: StereoModel,
+        motors: Motors,
+        *,
+        mode: str = "single",
+        height: float | None = None,
+        on_feature: Callable[[Feature], None] | None = None,
+        on_fault: Callable[[str], None] | None = None,
+    ):
+        self.model = model
+        self.fast = model.fast()
+        self.motors = motors
+        self.on_feature = on_feature
+        self.on_fault = on_fault
+        self.identity = model.left.to_photo is None and model.right.to_photo is None
+        self.mode = "single"
+        self.height = None
+        self.set_mode(mode, height)
+        self.current: Cycle | None = None
+        self.features: list[Feature] = []
+        self._open: tuple[str, str, list, list] | None = None
+        self.halted: str | None = None
+
+    # ----------------------------------------------------------- mode
+    def set_mode(self, mode: str, height: float | None = None) -> None:
+        """Switch restitution mode (contour needs ``height``)."""
+        if mode not in MODES or mode == "drive-to":
+            raise SoftplotError(f"plotter mode must be single, contour or free, got {mode!r}")
+        if mode == "contour":
+            if height is None or not np.isfinite(height):
+                raise SoftplotError("contour mode needs a finite contour height")
+            self.height = float(height)
+        self.mode = mode
+
+    # ----------------------------------------------------------- the cycle
+    def cycle(self, X: float, Y: float, px: float | None = None) -> Cycle:
+        """One plotter cycle.
+
+        Parameters
+        ----------
+        X, Y : float
+            Main carriage (right film point under the mark), instrument mm.
+        px : float, optional
+            x-parallax handwheel = DX, instrument mm (single mode; default: keep DX).
+
+        Returns
+        -------
+        Cycle
+            The computed mark: carriages, photo points, object point, y-parallax.
+
+        Raises
+        ------
+        PlotterHalted
+            On a motor fault (the motors are stopped first).
+        """
+        if self.halted is not None:
+            raise PlotterHalted(self.halted)
+        mot = self.motors
+        mot.set_main(X, Y)
+        mode = self.mode
+        if mode == "free":
+            DX, DY = mot.position()
+            r = self.model.free(self._to_photo(0, X + DX, Y + DY), self._to_photo(1, X, Y))
+            x1, y1 = r.xy1[0]
+            x2, y2 = r.xy2[0]
+            cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, tuple(r.XYZ[0]), float(r.py[0]))
+            self.current = cyc
+            return cyc
+        if self.identity:
+            f = self.fast
+            if mode == "single":
+                DX = mot.target()[0] if px is None else px
+                x1 = X + DX
+                y1, XX, YY, ZZ = f.single(X, Y, x1)
+                DY = y1 - Y
+            else:
+                ZZ = self.height
+                x1, y1, XX, YY = f.contour(X, Y, ZZ)
+                DX, DY = x1 - X, y1 - Y
+            x2, y2 = X, Y
+        else:
+            x2, y2 = self._to_photo(1, X, Y)
+            if mode == "single":
+                DX = mot.target()[0] if px is None else px
+                x1, y1, y1f, XX, YY, ZZ = self._single_film(X + DX, Y + mot.target()[1], x2, y2)
+                DY = y1f - Y
+            else:
+                ZZ = self.height
+                x1, y1, XX, YY = self.fast.contour(x2, y2, ZZ)
+                fx, fy = self.model.left.photo_to_film([[x1, y1]])[0]
+                DX, DY = fx - X, fy - Y
+        in_travel = True
+        try:
+            mot.move_to(DX, DY, wait=False)
+        except MotorLimitError:
+            in_travel = False
+        except MotorFault as exc:
+            self._fault(exc)
+        cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, (XX, YY, ZZ), 0.0, in_travel)
+        self.current = cyc
+        return cyc
+
+    def _to_photo(self, k: int, x: float, y: float):
+        photo = self.model.left if k == 0 else self.model.right
+        if photo.to_photo is None:
+            return (x, y)
+        p = photo.film_to_photo([[x, y]])[0]
+        return (float(p[0]), float(p[1]))
+
+    def _single_film(self, x1f, y1f, x2, y2, h=1e-3):
+        """Left film y that puts the corrected left point on the epipolar line (Newton)."""
+        left = self.model.left
+        f = self.fast
+        for _ in range(6):
+            p = left.film_to_photo([[x1f, y1f], [x1f, y1f + h]])
+            g0 = p[0, 1] - f.single(x2, y2, p[0, 0])[0]
+            g1 = p[1, 1] - f.single(x2, y2, p[1, 0])[0]
+            step = -g0 * h / (g1 - g0)
+            y1f += step
+            if abs(step) < 1e-13:
+                break
+        p = left.film_to_photo([[x1f, y1f]])[0]
+        x1 = float(p[0])
+        y1, XX, YY, ZZ = f.single(x2, y2, x1)
+        return x1, y1, y1f, XX, YY, ZZ
+
+    def drive_to(self, X: float, Y: float, Z: float) -> Cycle:
+        """Put the floating mark on object point (X, Y, Z).
+
+        The main carriage target (right film) is set with :meth:`Motors.set_main` (on
+        screen this moves the view; on an instrument the operator follows it) and DX, DY
+        are commanded.
+        """
+        if self.halted is not None:
+            raise PlotterHalted(self.halted)
+        r = self.model.drive_to([[X, Y, Z]])
+        (x1, y1), (x2, y2) = r.xy1[0], r.xy2[0]
+        fx2, fy2 = self.model.right.photo_to_film([[x2, y2]])[0]
+        fx1, fy1 = self.model.left.photo_to_film([[x1, y1]])[0]
+        DX, DY = fx1 - fx2, fy1 - fy2
+        self.motors.set_main(fx2, fy2)
+        in_travel = True
+        try:
+            self.motors.move_to(DX, DY, wait=False)
+        except MotorLimitError:
+            in_travel = False
+        except MotorFault as exc:
+            self._fault(exc)
+        cyc = Cycle(fx2, fy2, DX, DY, x1, y1, x2, y2, (X, Y, Z), float(r.py[0]), in_travel)
+        self.current = cyc
+        return cyc
+
+    # ----------------------------------------------------------- faults
+    def _fault(self, exc: MotorFault):
+        msg = f"motor fault: {exc}"
+        try:
+            self.motors.stop()
+            msg += "; motors stopped"
+        except Exception as stop_exc:  # noqa: BLE001 - report, never mask the first fault
+            msg += f"; stopping failed too ({stop_exc})"
+        msg += f"; session kept ({len(self.features)} features recorded)"
+        self.halted = msg
+        if self.on_fault is not None:
+            self.on_fault(msg)
+        raise PlotterHalted(msg) from exc
+
+    def recover(self) -> None:
+        """Clear a halt after the motors were fixed (e.g. ``GrblMotors.recover``)."""
+        self.halted = None
+
+    # ----------------------------------------------------------- recording
+    def _attrs(self, cyc: Cycle, extra: dict) -> dict:
+        a = {"mode": self.mode, "x1": cyc.x1, "y1": cyc.y1, "x2": cyc.x2, "y2": cyc.y2}
+        a.update(extra)
+        return a
+
+    def _emit(self, feat: Feature) -> Feature:
+        self.features.append(feat)
+        if self.on_feature is not None:
+            self.on_feature(feat)
+        return feat
+
+    def record_point(self, code: str, **attributes) -> Feature:
+        """Record the current mark as a spot height with ``code``."""
+        cyc = self._need_current()
+        return self._emit(Feature(code, "point", [cyc.XYZ], self._attrs(cyc, attributes)))
+
+    def begin(self, code: str, kind: str | None = None, **attributes) -> None:
+        """Start a line (``kind="line"``) or, in contour mode by default, a contour."""
+        kind = kind or ("contour" if self.mode == "contour" else "line")
+        if kind not in ("line", "contour"):
+            raise SoftplotError(f"begin: kind must be line or contour, got {kind!r}")
+        if kind == "contour" and self.mode != "contour":
+            raise SoftplotError("a contour is traced in contour mode")
+        Feature(code, "point", [[0.0, 0.0, 0.0]])  # validates the code now
+        self._open = (code, kind, [], [])
+        self._open_attrs = dict(attributes)
+        if kind == "contour":
+            self._open_attrs["height"] = self.height
+
+    def vertex(self) -> int:
+        """Add the current mark to the open line; returns the number of vertices."""
+        if self._open is None:
+            raise SoftplotError("vertex: no line open (call begin first)")
+        cyc = self._need_current()
+        self._open[2].append(cyc.XYZ)
+        self._open[3].append((cyc.x1, cyc.y1, cyc.x2, cyc.y2))
+        return len(self._open[2])
+
+    def end(self, *, close: bool = False) -> Feature | None:
+        """Finish the open line (``close`` repeats the first vertex); None if < 2 vertices."""
+        if self._open is None:
+            raise SoftplotError("end: no line open")
+        code, kind, verts, img = self._open
+        self._open = None
+        if len(verts) < 2:
+            return None
+        if close:
+            verts = verts + [verts[0]]
+        attrs = dict(self._open_attrs)
+        attrs["image_points"] = [list(map(float, p)) for p in img]
+        return self._emit(Feature(code, kind, verts, attrs))
+
+    def _need_current(self) -> Cycle:
+        if self.current is None:
+            raise SoftplotError("no floating-mark position yet: run a cycle first")
+        return self.current
