@@ -20,6 +20,8 @@ from softplot.errors import SoftplotError
 COMMANDS = [
     "cameras",
     "info",
+    "restitute",
+    "motors",
 ]
 
 

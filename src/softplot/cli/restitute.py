@@ -1,0 +1,132 @@
+"""``softplot restitute``: batch stereo restitution from an oriented pair (CSV in, CSV out)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from softplot.errors import SoftplotError
+
+PHOTO_COLUMNS = ("photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c")
+IN_COLUMNS = {
+    "single": ("name", "x2", "y2", "x1"),
+    "contour": ("name", "x2", "y2"),
+    "free": ("name", "x1", "y1", "x2", "y2"),
+    "drive-to": ("name", "X", "Y", "Z"),
+}
+OUT_COLUMNS = ("name", "x1", "y1", "x2", "y2", "X", "Y", "Z", "py")
+
+
+def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
+    try:
+        with path.open(newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except OSError as exc:
+        raise SoftplotError(f"cannot read {what} {path}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise SoftplotError(f"{what} {path} is not a text CSV file") from exc
+    if not rows:
+        raise SoftplotError(f"{what} {path} is empty")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in columns if c not in header]
+    if missing:
+        raise SoftplotError(
+            f"{what} {path}: missing column(s) {', '.join(missing)} (need {','.join(columns)})"
+        )
+    idx = [header.index(c) for c in columns]
+    names, values = [], []
+    for n, r in enumerate(rows[1:], start=2):
+        if len(r) < len(header):
+            raise SoftplotError(f"{what} {path}: line {n} has {len(r)} fields, need {len(header)}")
+        names.append(r[idx[0]].strip())
+        try:
+            vals = [float(r[i]) for i in idx[1:]]
+        except ValueError as exc:
+            raise SoftplotError(f"{what} {path}: line {n}: {exc}") from exc
+        if not all(math.isfinite(v) for v in vals):
+            raise SoftplotError(f"{what} {path}: line {n} has a non-finite number")
+        values.append(vals)
+    return names, np.array(values, dtype=float).reshape(len(values), len(columns) - 1)
+
+
+@click.command("restitute")
+@click.option(
+    "--photos",
+    "photos_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="CSV with two rows (left first): photo,X0,Y0,Z0,omega,phi,kappa,c "
+    "(angles in degrees, c in mm).",
+)
+@click.option(
+    "--mode",
+    required=True,
+    type=click.Choice(list(IN_COLUMNS)),
+    help="single: name,x2,y2,x1; contour: name,x2,y2 (+ --height); "
+    "free: name,x1,y1,x2,y2; drive-to: name,X,Y,Z.",
+)
+@click.option(
+    "--points",
+    "points_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Input points CSV (photo mm or object coordinates, by mode).",
+)
+@click.option("--height", type=float, default=None, help="Contour height Qc (contour mode).")
+@click.option(
+    "--out",
+    "out_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Output CSV: name,x1,y1,x2,y2,X,Y,Z,py (py = residual y-parallax, mm).",
+)
+def command(photos_path, mode, points_path, height, out_path):
+    """Restitute points of an oriented stereo pair in one of the four STEREOBIT modes."""
+    from softplot.stereo.model import OrientedPhoto, StereoModel
+
+    out_path = Path(out_path)
+    for p in (photos_path, points_path):
+        if out_path.exists() and out_path.resolve() == Path(p).resolve():
+            raise SoftplotError(f"--out {out_path} would overwrite an input file")
+    names, ph = _read_csv(photos_path, PHOTO_COLUMNS, "photos file")
+    if len(names) != 2:
+        raise SoftplotError(
+            f"photos file {photos_path} needs exactly 2 rows (left, right), got {len(names)}"
+        )
+    photos = [
+        OrientedPhoto(row[0:3], np.deg2rad(row[3:6]), row[6], name=nm)
+        for nm, row in zip(names, ph, strict=True)
+    ]
+    model = StereoModel(*photos)
+    pnames, v = _read_csv(points_path, IN_COLUMNS[mode], "points file")
+    if mode == "contour" and height is None:
+        raise SoftplotError("contour mode needs --height")
+    if mode != "contour" and height is not None:
+        raise SoftplotError("--height is only used in contour mode")
+    if not pnames:
+        raise SoftplotError(f"points file {points_path} has no points")
+    if mode == "single":
+        r = model.single_point(v[:, 0:2], v[:, 2])
+    elif mode == "contour":
+        r = model.contour(v[:, 0:2], height)
+    elif mode == "free":
+        r = model.free(v[:, 0:2], v[:, 2:4])
+    else:
+        r = model.drive_to(v)
+    table = np.c_[r.xy1, r.xy2, r.XYZ, r.py]
+    if not np.all(np.isfinite(table)):
+        bad = [pnames[i] for i in np.flatnonzero(~np.all(np.isfinite(table), axis=1))]
+        raise SoftplotError(f"no solution for point(s) {', '.join(bad[:5])}")
+    try:
+        with out_path.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(OUT_COLUMNS)
+            for nm, row in zip(pnames, table.tolist(), strict=True):
+                w.writerow([nm] + [repr(x) for x in row])
+    except OSError as exc:
+        raise SoftplotError(f"cannot write {out_path}: {exc.strerror or exc}") from exc
+    click.echo(f"{len(pnames)} point(s) restituted ({mode}) -> {out_path}")
