@@ -331,10 +331,14 @@ class StereoModel:
         xy2 = np.asarray(xy2, dtype=float).reshape(-1, 2)
         Z = np.broadcast_to(np.asarray(Z, dtype=float).reshape(-1), (len(xy2),))
         r2 = self.right.ray(xy2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = (Z - self.right.X0[2]) / r2[:, 2]
-        if not np.all(np.isfinite(lam)):
+        if np.any(np.abs(r2[:, 2]) <= 1e-12 * np.linalg.norm(r2, axis=1)):
             raise SoftplotError("contour: a right ray is parallel to the contour plane")
+        lam = (Z - self.right.X0[2]) / r2[:, 2]
+        if np.any(lam <= 0):
+            raise SoftplotError(
+                f"contour: the plane Z = {Z[np.argmin(lam)]:g} is behind the right camera for "
+                f"{int(np.sum(lam <= 0))} point(s)"
+            )
         XYZ = self.right.X0 + lam[:, None] * r2
         XYZ[:, 2] = Z
         xy1 = self.left.project(XYZ)
