@@ -163,6 +163,10 @@ def parse_status(line: str, last_wco=None) -> GrblStatus:
     return st
 
 
+class _Discarded(MotorError):
+    """A line in flight was thrown away by a controller reset (banner seen)."""
+
+
 class _Pending:
     __slots__ = ("line", "nbytes", "done", "reply", "info")
 
@@ -244,9 +248,19 @@ class GrblMotors(Motors):
         self._lost: Exception | None = None
         self.connect()
 
-    # ------------------------------------------------------------------ connection
     def connect(self) -> None:
-        """Open the port, soft-reset, wait for the banner, read/configure settings."""
+        """Open the port, soft-reset, wait for the banner, read/configure settings.
+
+        On failure the port is closed again and the error raised.
+        """
+        try:
+            self._connect()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ connection
+    def _connect(self) -> None:
         try:
             self.ser = serial.Serial(
                 self.port, self.baudrate, timeout=0.05, write_timeout=self.timeout
@@ -259,6 +273,7 @@ class GrblMotors(Motors):
         self._reader = threading.Thread(target=self._read_loop, name="grbl-reader", daemon=True)
         self._reader.start()
         self.soft_reset()
+        self._handshake()
         self.read_settings()
         if self.configure_axes:
             self._configure()
@@ -370,7 +385,7 @@ class GrblMotors(Motors):
                         p.done.set()
             elif line.startswith("Grbl "):
                 self._banner_seq += 1
-                err = MotorError("controller reset; line discarded")
+                err = _Discarded(f"controller on {self.port} reset; line discarded")
                 while self._inflight:
                     p = self._inflight.popleft()
                     p.reply = err
@@ -494,6 +509,21 @@ class GrblMotors(Motors):
                 self._cv.wait(left)
             self._inflight.clear()
         self.alarm = None
+
+    def _handshake(self, attempts: int = 4) -> list[str]:
+        """``$I`` until it is answered (a late banner may discard the first tries)."""
+        for i in range(attempts):
+            try:
+                info = self.command("$I")
+            except _Discarded:
+                if i == attempts - 1:
+                    raise
+                continue
+            ver = [ln for ln in info if ln.startswith("[VER:")]
+            if ver and not ver[0].startswith("[VER:1.1"):
+                raise MotorError(f"{self.port}: GRBL 1.1 expected, controller says {ver[0]}")
+            return info
+        return []
 
     def read_settings(self) -> dict[int, float]:
         """``$$``: the controller's settings (also kept in :attr:`settings`)."""

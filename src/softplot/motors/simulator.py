@@ -688,7 +688,7 @@ class GrblSimulator:
     def _freeze(self):
         """Stop the current block where it is now (remaining motion kept for resume)."""
         blk = self.current
-        if blk is None:
+        if blk is None or blk.start is None:
             return
         self._move_to_fraction(blk, self._fraction(blk))
         blk.start = None
@@ -754,7 +754,8 @@ class GrblSimulator:
                         self.pos = [
                             s + 0.5 * (e - s) for s, e in zip(blk.start, blk.target, strict=True)
                         ]
-                        self.phys = list(self.pos[:2]) + [self.pos[2]]
+                        self.phys = list(self.pos)
+                        self.current = None
                         self._critical_alarm(1)
                         return
                     if fl.kind == "disconnect":

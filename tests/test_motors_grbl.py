@@ -1,0 +1,252 @@
+"""GrblMotors against the simulated GRBL 1.1 controller on a real pty (pyserial end to end)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from softplot.motors import (
+    AxisConfig,
+    LostSteps,
+    MotorAlarm,
+    MotorCommandError,
+    MotorDisconnected,
+    MotorError,
+    MotorTimeout,
+)
+from softplot.motors.grbl import GrblMotors, parse_status
+from softplot.motors.simulator import GrblSimulator, parse_faults
+
+
+@pytest.fixture
+def sim():
+    s = GrblSimulator(time_scale=20)
+    s.start()
+    yield s
+    s.stop()
+
+
+# --------------------------------------------------------------------------- parsing
+def test_parse_status_variants():
+    st = parse_status("<Idle|MPos:1.500,-2.250,0.000|FS:0,0|WCO:1.000,1.000,0.000>")
+    assert st.state == "Idle" and st.mpos == (1.5, -2.25, 0.0)
+    assert st.wpos == (0.5, -3.25, 0.0) and not st.moving
+    st = parse_status("<Run|WPos:0.500,0.000,0.000|Bf:15,128|FS:169,0>", last_wco=(1.0, 2.0, 0.0))
+    assert st.mpos == (1.5, 2.0, 0.0) and st.buffer == (15, 128) and st.feed == 169 and st.moving
+    st = parse_status("<Hold:1|MPos:0.000,0.000,0.000|Pn:XZ|Ov:100,100,100>")
+    assert st.state == "Hold" and st.substate == 1 and st.moving and st.pins == "XZ"
+    assert parse_status("<Jog|MPos:1,2,3|F:500>").feed == 500
+    with pytest.raises(MotorError, match="not a GRBL status"):
+        parse_status("ok")
+    with pytest.raises(MotorError, match="without a position"):
+        parse_status("<Idle|FS:0,0>")
+    with pytest.raises(MotorError, match="bad field"):
+        parse_status("<Idle|MPos:1,a,3>")
+
+
+def test_fault_spec_parsing():
+    plan = parse_faults("slow=0.2, alarm@move3,lost-steps=5@move2,disconnect@1.5s")
+    kinds = [(f.kind, f.value, f.at_move, f.at_time) for f in plan.faults]
+    assert kinds == [
+        ("slow", 0.2, None, None),
+        ("alarm", 0.0, 3, None),
+        ("lost-steps", 5.0, 2, None),
+        ("disconnect", 0.0, None, 1.5),
+    ]
+    assert plan.slow == 0.2
+    for bad in ("bogus", "alarm", "slow", "lost-steps=2"):
+        with pytest.raises(MotorError):
+            parse_faults(bad)
+
+
+# --------------------------------------------------------------------------- normal use
+def test_connect_move_home_and_position(sim):
+    with GrblMotors(sim.path, timeout=2) as m:
+        assert m.status().state == "Idle"  # the alarm lock at power-up was cleared ($X)
+        assert "$X" in sim.log
+        m.move_to(1.23, -2.5)
+        assert m.position() == pytest.approx((1.23, -2.5))
+        assert sim.pos[:2] == pytest.approx([1.23, -2.5])
+        m.move_to(0.5, 0.5, wait=False)
+        assert m.wait(timeout=5)
+        assert m.position() == pytest.approx((0.5, 0.5))
+        m.home()  # $H, work offset so that the homed position is plate (0, 0)
+        assert m.position() == (0.0, 0.0)
+        assert m.status().mpos[:2] == pytest.approx((-1.0, -1.0))  # pull-off
+        assert m.status().wco[:2] == pytest.approx((-1.0, -1.0))
+        m.move_to(2.0, 3.0)
+        assert sim.pos[:2] == pytest.approx([1.0, 2.0])
+        assert m.position() == pytest.approx((2.0, 3.0))
+
+
+def test_wpos_reports_and_remembered_wco():
+    with GrblSimulator(time_scale=20, settings={10: 0}) as s, GrblMotors(s.path) as m:
+        m.command("G10L20P1X0Y0")  # here is (0, 0)
+        m.move_to(-1.0, 4.0)
+        st = m.status()
+        assert "WPos" in st.fields and "MPos" not in st.fields
+        assert m.position() == pytest.approx((-1.0, 4.0))
+        for _ in range(12):  # most reports carry no WCO: the remembered one is used
+            assert m.position() == pytest.approx((-1.0, 4.0))
+
+
+def test_configures_steps_per_mm_and_rate():
+    ax = AxisConfig(resolution_mm=0.005, max_speed_mm_s=5.0)
+    with GrblSimulator(time_scale=20) as s, GrblMotors(s.path, ax, ax) as m:
+        assert s.settings[100] == 200.0 and s.settings[111] == 300.0
+        m.move_to(0.125, 0.0)
+        assert m.position_steps() == (25, 0)
+
+
+@pytest.mark.parametrize("streaming", ["char-count", "send-response"])
+def test_streaming_many_moves(sim, streaming):
+    with GrblMotors(sim.path, streaming=streaming, timeout=5) as m:
+        targets = [(0.01 * i, -0.02 * i) for i in range(1, 41)]
+        for tx, ty in targets:
+            m.move_to(tx, ty, wait=False)
+        assert m.wait(timeout=20)
+        assert m.position() == pytest.approx(targets[-1])
+        moves = [ln for ln in sim.log if ln.startswith("G90G1")]
+        assert len(moves) == 40  # nothing lost or mangled in the 128-byte buffer
+
+
+def test_error_codes_become_one_line_errors(sim):
+    with GrblMotors(sim.path) as m:
+        with pytest.raises(MotorCommandError, match=r"error:20 \(unsupported command\)") as e:
+            m.command("G0Q1")
+        assert e.value.code == 20
+        with pytest.raises(MotorCommandError, match="error:22"):
+            m.command("G1X1")  # feed rate undefined after reset
+        with pytest.raises(MotorCommandError, match="error:2"):
+            m.command("foo")
+        m.move_to(0.1, 0.1)  # still usable
+
+
+def test_stop_during_a_long_move(sim):
+    ax = AxisConfig(max_speed_mm_s=1.0)
+    with GrblMotors(sim.path, ax, ax) as m:
+        m.move_to(15.0, 0.0, wait=False)  # 15 s at 1 mm/s, 0.75 s simulated
+        time.sleep(0.1)
+        m.stop()
+        assert m.status().state == "Idle"
+        dx, _ = m.position()
+        assert 0.0 < dx < 15.0
+        assert m.target()[0] == pytest.approx(dx)
+        m.move_to(0.0, 0.0)  # no alarm after a completed feed hold
+        assert m.position() == (0.0, 0.0)
+
+
+def test_soft_limit_alarm_needs_a_reset():
+    with GrblSimulator(time_scale=20, settings={20: 1}) as s:
+        ax = AxisConfig(min_mm=-100, max_mm=100)
+        with GrblMotors(s.path, ax, ax, timeout=0.5) as m:
+            with pytest.raises(MotorAlarm, match="ALARM:2"):
+                m.move_to(5.0, 0.0)  # machine travel is [-40, 0]: soft limit
+            with pytest.raises(MotorAlarm):
+                m.status()  # nothing answered, not even '?'
+            m.recover()
+            m.move_to(-1.0, -1.0)
+            assert m.position() == pytest.approx((-1.0, -1.0))
+
+
+# --------------------------------------------------------------------------- injected faults
+def test_fault_alarm_during_move(sim):
+    with GrblMotors(sim.path, timeout=1) as m:
+        m.move_to(1.0, 1.0)
+        sim.inject("alarm@move1")
+        with pytest.raises(MotorAlarm, match=r"ALARM:1 \(hard limit"):
+            m.move_to(3.0, 3.0)
+        with pytest.raises(MotorAlarm):
+            m.move_to(0.0, 0.0)  # the fault sticks until recovered
+        m.recover()
+        assert m.position() == pytest.approx((2.0, 2.0))  # where the alarm stopped it
+        m.move_to(0.0, 0.0)
+        assert m.position() == (0.0, 0.0)
+
+
+def test_fault_lost_steps_detected_by_encoders(sim):
+    with GrblMotors(sim.path, check_encoders=True) as m:
+        m.move_to(1.0, 0.0)
+        assert m.verify_encoders() == pytest.approx((1.0, 0.0))
+        sim.inject("lost-steps=5@move1")
+        with pytest.raises(LostSteps, match=r"lost steps on DX.*-5 steps"):
+            m.move_to(2.0, 0.0)
+        assert sim.physical_position()[0] == pytest.approx(1.95)
+    with GrblSimulator(time_scale=20, faults="lost-steps=3@move1") as s:
+        with GrblMotors(s.path) as m:  # without encoder checks the loss goes unnoticed
+            m.move_to(1.0, 0.0)
+            assert m.position() == pytest.approx((1.0, 0.0))
+            assert s.physical_position()[0] == pytest.approx(0.97)
+
+
+def test_fault_slow_replies():
+    with GrblSimulator(time_scale=20, faults="slow=0.3") as s:
+        with pytest.raises(MotorTimeout, match="no GRBL banner"):
+            GrblMotors(s.path, timeout=0.1)
+        with GrblMotors(s.path, timeout=2) as m:
+            assert m.ping() >= 0.29
+            m.move_to(0.2, 0.1)
+            assert m.position() == pytest.approx((0.2, 0.1))
+            m.timeout = 0.1
+            with pytest.raises(MotorTimeout, match="within 0.1 s"):
+                m.status()
+
+
+def test_fault_disconnect_and_reconnect(tmp_path):
+    link = str(tmp_path / "ttyGRBL")
+    with GrblSimulator(time_scale=20, link=link, reconnect_after=0.3) as s:
+        with GrblMotors(link, timeout=1) as m:
+            m.move_to(1.0, 1.0)
+            first = s.slave_path
+            s.inject("disconnect@move1")
+            with pytest.raises(MotorDisconnected, match="lost"):
+                m.move_to(2.0, 2.0)
+                m.move_to(2.5, 2.5)
+            with pytest.raises(MotorDisconnected):
+                m.position()
+            m.reconnect(timeout=5)
+            assert os.path.realpath(link) == s.slave_path
+            assert s.slave_path is not None and first is not None
+            m.move_to(0.5, 0.5)
+            assert m.position() == pytest.approx((0.5, 0.5))
+
+
+def test_unreachable_port():
+    with pytest.raises(MotorDisconnected, match="cannot open serial port"):
+        GrblMotors("/nonexistent/ttyX", timeout=0.2)
+
+
+# --------------------------------------------------------------------------- the CLI
+def test_cli_simulate_serves_a_pty():
+    exe = [sys.executable, "-m", "softplot.cli.__init__"]
+    exe = [sys.executable, "-c", "from softplot.cli import main; main()"]
+    proc = subprocess.Popen(
+        exe + ["motors", "simulate", "--duration", "20", "--time-scale", "20"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/")
+        with GrblMotors(path, timeout=2) as m:
+            m.move_to(0.3, -0.4)
+            assert m.position() == pytest.approx((0.3, -0.4))
+        out = subprocess.run(
+            exe + ["motors", "status", path], capture_output=True, text=True, timeout=30
+        )
+        assert out.returncode == 0 and "DX=0.300 DY=-0.400" in out.stdout
+        bad = subprocess.run(
+            exe + ["motors", "status", "/nonexistent/tty"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert bad.returncode == 2 and bad.stderr.count("\n") == 1
+        assert "cannot open serial port" in bad.stderr and "Traceback" not in bad.stderr
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
