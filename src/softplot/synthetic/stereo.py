@@ -17,6 +17,7 @@ Returns plain arrays and callables (no dependency on :mod:`softplot.stereo`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -116,8 +117,8 @@ class SyntheticPair:
         return self.photo_to_film(k, self.photo(k, XYZ))
 
     def corrections(self, k: int):
-        """``(film_to_photo, photo_to_film)`` callables of photo k."""
-        return (lambda xy: self.film_to_photo(k, xy)), (lambda xy: self.photo_to_film(k, xy))
+        """``(film_to_photo, photo_to_film)`` callables of photo k (picklable)."""
+        return partial(self.film_to_photo, k), partial(self.photo_to_film, k)
 
 
 def aerial_pair(

@@ -1,0 +1,727 @@
+"""Render a synthetic scan of a film frame with exact truth.
+
+The physics, in order:
+
+1. **Exposure** (undeformed film mm): the scene and the reseau crosses / fiducial marks are
+   exposed together. In a positive the film background is ``mark_level + contrast * g``
+   (``g`` the scene factor, 1 for an empty scene; ``mark_level = background - contrast``);
+   the marks and the unexposed border outside the format are at ``mark_level``. A mark's pixel
+   coverage is integrated exactly (see :mod:`softplot.synthetic.marks`).
+2. **Deformation** of the film (shrinkage + smooth field) and **scanning** (scanner affine,
+   crop): the truth mapping of :mod:`softplot.synthetic.mapping`. Every pixel is rendered at
+   its exact undeformed film position, so a mark's true pixel position is
+   ``film_to_pixel(certificate film coordinates)``.
+3. Film **grain** (white, before the scanner optics), **polarity** (negative: ``1 - value``,
+   bright marks on a dark background), the **orange mask** of a colour negative (RGB),
+   **dust, scratches and covering blobs** on the film surface, the scanner's **Gaussian blur**
+   (``blur_sigma_px``), sensor **noise** (``noise_sigma``), and **quantisation** to 8 or 16 bits.
+
+Values are fractions of full scale (1.0 = white = 255 or 65535 in the file). The image is
+composed in horizontal strips (bounded memory, exact because the blur gets a halo and every
+random field is seeded per block of rows), so the same seed gives the same pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from softplot.camera import Camera, load_camera
+from softplot.errors import SoftplotError
+from softplot.synthetic.mapping import Deformation, Scanner, TruthMapping
+from softplot.synthetic.marks import MarkShape, cross_shape, fiducial_shape, render_marks
+from softplot.synthetic.scene import SCENES, Scene
+
+#: transmittance (R, G, B) of the orange mask of a colour negative film base
+ORANGE_MASK = (0.85, 0.55, 0.30)
+#: ITU-R BT.601 luma weights, as softplot.io converts RGB to grey
+LUMA = (0.299, 0.587, 0.114)
+POLARITIES = ("positive", "negative")
+FILE_FORMATS = ("tif", "jpg", "png")
+
+_BLOCK = 64  # rows per independently seeded block of random numbers
+_GRID = 32  # px between exact film-coordinate nodes for the scene maps
+_STREAMS = {"deform": 1, "scene": 2, "cover": 3, "dust": 4, "scratch": 5, "grain": 6, "noise": 7}
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """How to render a synthetic scan.
+
+    Attributes
+    ----------
+    dpi : float
+        Scan resolution, dots per inch (> 0).
+    polarity : str
+        "positive" (dark marks on a brighter image, as a print or diapositive) or "negative"
+        (bright marks, as a film negative; the scene is inverted too).
+    blur_sigma_px : float
+        Scanner optics: Gaussian blur sigma in pixels (0 for none).
+    noise_sigma : float
+        Sensor noise, Gaussian, per channel, fraction of full scale, added after the blur.
+    grain_sigma : float
+        Film grain, white Gaussian, fraction of full scale, added before the blur.
+    contrast : float
+        Mark-minus-background amplitude on an empty scene, fraction of full scale.
+    background : float
+        Positive film background level on an empty scene (the marks are at
+        ``background - contrast``; a negative is ``1 - value``).
+    scene : str or callable
+        "none", "texture", "busy", or ``f(x_mm, y_mm) -> reflectance in [0, 1]`` in
+        undeformed film mm (0.5 = nominal background); see :mod:`softplot.synthetic.scene`.
+    deform_um : float
+        Largest displacement (micrometres) of the smooth film deformation over the format.
+    shrink_ppm : float
+        Uniform film shrinkage, parts per million (positive shrinks).
+    rotation_deg : float
+        Scanner rotation: the film frame turned counter-clockwise on screen, degrees.
+    offset_px : (float, float)
+        Shift (pixel x, y) of the film within the scan from the centred position.
+    anisotropy_ppm : float
+        Scanner x/y scale difference, ppm (x scale ``1 + a/2``, y scale ``1 - a/2``).
+    dust : int
+        Number of dust particles and fibres (opaque, dark) on the film surface.
+    scratches : int
+        Number of long thin scratches (bright or dark).
+    cover : int or tuple of str
+        Number of marks (or their names) wholly hidden by an opaque blob: state "covered".
+    crop_mm : float or (left, top, right, bottom)
+        Millimetres cut off the scan's edges (a single number: left and top only). The
+        uncropped scan shows the format plus ``margin_mm`` on each side.
+    margin_mm : float
+        Unexposed film border shown around the format.
+    bits : int
+        8 or 16 (32: float32, API and TIFF only).
+    rgb : bool
+        Three channels; with ``polarity="negative"`` an orange-masked colour negative.
+    file_format : str
+        "tif", "jpg" (8-bit only) or "png" (used by :func:`write_scan`).
+    jpeg_quality : int
+        JPEG quality (1-100).
+    tiff_compression : str or None
+        TIFF compression ("zlib", "lzw", ...); None writes uncompressed (memory-mappable).
+    subrows : int
+        Sub-rows per pixel in the mark integration (>= 8).
+    """
+
+    dpi: float = 1200.0
+    polarity: str = "positive"
+    blur_sigma_px: float = 0.8
+    noise_sigma: float = 0.01
+    grain_sigma: float = 0.0
+    contrast: float = 0.5
+    background: float = 0.8
+    scene: str | Callable = "texture"
+    deform_um: float = 20.0
+    shrink_ppm: float = 0.0
+    rotation_deg: float = 0.0
+    offset_px: tuple[float, float] = (0.0, 0.0)
+    anisotropy_ppm: float = 0.0
+    dust: int = 0
+    scratches: int = 0
+    cover: int | tuple[str, ...] = 0
+    crop_mm: float | tuple[float, float, float, float] = 0.0
+    margin_mm: float = 1.0
+    bits: int = 8
+    rgb: bool = False
+    file_format: str = "tif"
+    jpeg_quality: int = 92
+    tiff_compression: str | None = None
+    subrows: int = 16
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def validate(self) -> "ScanSpec":
+        """Check every field; raise :class:`SoftplotError` naming the first bad one."""
+
+        def bad(name: str, why: str) -> SoftplotError:
+            return SoftplotError(f"synthetic scan: {name} {why}, got {getattr(self, name)!r}")
+
+        def num(name: str, lo: float | None = None, lo_open: bool = False) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad(name, "must be a finite number")
+            if lo is not None and (v <= lo if lo_open else v < lo):
+                raise bad(name, f"must be {'>' if lo_open else '>='} {lo:g}")
+
+        num("dpi", 0.0, lo_open=True)
+        if self.dpi > 20000:
+            raise bad("dpi", "must be at most 20000")
+        for n in ("blur_sigma_px", "noise_sigma", "grain_sigma", "deform_um", "margin_mm"):
+            num(n, 0.0)
+        for n in ("shrink_ppm", "rotation_deg", "anisotropy_ppm"):
+            num(n)
+        num("contrast", 0.0, lo_open=True)
+        num("background", 0.0, lo_open=True)
+        if self.background > 1.0:
+            raise bad("background", "must be at most 1")
+        if self.contrast > self.background:
+            raise bad("contrast", f"must be at most background ({self.background:g})")
+        if abs(self.shrink_ppm) >= 1e5 or abs(self.anisotropy_ppm) >= 1e5:
+            raise SoftplotError("synthetic scan: shrink_ppm and anisotropy_ppm must be < 1e5")
+        if self.deform_um > 1000:
+            raise bad("deform_um", "must be at most 1000")
+        if self.polarity not in POLARITIES:
+            raise bad("polarity", f"must be one of {', '.join(POLARITIES)}")
+        if not callable(self.scene) and self.scene not in SCENES:
+            raise bad("scene", f"must be one of {', '.join(SCENES)} or a function")
+        if self.bits not in (8, 16, 32):
+            raise bad("bits", "must be 8 or 16 (32 for float)")
+        if self.file_format not in FILE_FORMATS:
+            raise bad("file_format", f"must be one of {', '.join(FILE_FORMATS)}")
+        if self.file_format == "jpg" and self.bits != 8:
+            raise SoftplotError("synthetic scan: JPEG holds 8 bits only (use --bits 8 or tif/png)")
+        if self.file_format == "png" and self.bits == 32:
+            raise SoftplotError("synthetic scan: PNG cannot hold float samples (use 8 or 16 bits)")
+        for n in ("dust", "scratches"):
+            v = getattr(self, n)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise bad(n, "must be a non-negative integer")
+        if not isinstance(self.cover, (tuple, list)):
+            if isinstance(self.cover, bool) or not isinstance(self.cover, (int, np.integer)):
+                raise bad("cover", "must be a count or a list of mark names")
+            if self.cover < 0:
+                raise bad("cover", "must not be negative")
+        if len(np.ravel(self.offset_px)) != 2 or not np.all(np.isfinite(self.offset_px)):
+            raise bad("offset_px", "must be two finite numbers")
+        crop = np.ravel(np.asarray(self.crop_mm, float))
+        if crop.size not in (1, 4) or not np.all(np.isfinite(crop)) or np.any(crop < 0):
+            raise bad("crop_mm", "must be one or four non-negative numbers")
+        if not (isinstance(self.subrows, (int, np.integer)) and 8 <= self.subrows <= 256):
+            raise bad("subrows", "must be an integer in 8..256")
+        if not (isinstance(self.jpeg_quality, (int, np.integer)) and 1 <= self.jpeg_quality <= 100):
+            raise bad("jpeg_quality", "must be an integer in 1..100")
+        return self
+
+    def crop_px(self, px_per_mm: float) -> tuple[int, int, int, int]:
+        """(left, top, right, bottom) pixels cut off the uncropped scan."""
+        c = np.ravel(np.asarray(self.crop_mm, float))
+        c = np.array([c[0], c[0], 0.0, 0.0]) if c.size == 1 else c
+        return tuple(int(round(v * px_per_mm)) for v in c)
+
+    def to_dict(self) -> dict:
+        """JSON-ready record of the spec (a callable scene is recorded as "callable")."""
+        d = asdict(self)
+        d["scene"] = self.scene if isinstance(self.scene, str) else "callable"
+        d["cover"] = list(self.cover) if isinstance(self.cover, (tuple, list)) else int(self.cover)
+        d["offset_px"] = [float(v) for v in np.ravel(self.offset_px)]
+        d["crop_mm"] = [float(v) for v in np.ravel(np.asarray(self.crop_mm, float))]
+        return d
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def _rng(seed: int, stream: str, *more: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(seed), _STREAMS[stream], *more]))
+
+
+class _BlockNormals:
+    """Standard normals for rows [r0, r1) of a (H, W, C) field, seeded per block of rows."""
+
+    def __init__(self, seed: int, stream: str, width: int, channels: int) -> None:
+        self.seed, self.stream, self.width, self.channels = seed, stream, width, channels
+        self.cache: dict[int, np.ndarray] = {}
+
+    def block(self, b: int) -> np.ndarray:
+        if b not in self.cache:
+            rng = _rng(self.seed, self.stream, b)
+            self.cache[b] = rng.standard_normal((_BLOCK, self.width, self.channels), np.float32)
+        return self.cache[b]
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        b0, b1 = r0 // _BLOCK, (r1 - 1) // _BLOCK
+        for k in [k for k in self.cache if k < b0]:
+            del self.cache[k]
+        parts = [self.block(b) for b in range(b0, b1 + 1)]
+        a = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
+        return a[r0 - b0 * _BLOCK : r1 - b0 * _BLOCK]
+
+
+@dataclass
+class _Patch:
+    """An opaque-ish defect on the film surface: alpha (h, w) at pixel (r0, c0), a value."""
+
+    r0: int
+    c0: int
+    alpha: np.ndarray
+    value: float
+    kind: str
+
+
+def _patch(pts_px: np.ndarray, value: float, opacity: float, kind: str,
+           thickness: float | None = None) -> _Patch | None:
+    """Rasterise a filled polygon (thickness None) or a polyline, anti-aliased, in pixels."""
+    pad = int(math.ceil((thickness or 0) / 2)) + 2
+    lo = np.floor(pts_px.min(axis=0)).astype(int) - pad
+    hi = np.ceil(pts_px.max(axis=0)).astype(int) + pad
+    w, h = hi - lo + 1
+    if w <= 0 or h <= 0 or w * h > 60_000_000:
+        return None
+    canvas = np.zeros((h, w), np.uint8)
+    pts = np.round((pts_px - lo) * 16).astype(np.int32)
+    if thickness is None:
+        cv2.fillPoly(canvas, [pts], 255, cv2.LINE_AA, 4)
+    else:
+        t = max(1, int(round(thickness)))
+        opacity *= min(1.0, thickness / t)
+        cv2.polylines(canvas, [pts], False, 255, t, cv2.LINE_AA, 4)
+    alpha = canvas.astype(np.float32) * np.float32(opacity / 255.0)
+    return _Patch(int(lo[1]), int(lo[0]), alpha, float(value), kind)
+
+
+def _blob(centre: np.ndarray, radius: float, rng: np.random.Generator, n: int = 28) -> np.ndarray:
+    """An irregular closed polygon (pixels) whose every edge lies at least ``radius`` out."""
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(-0.05, 0.05, n)
+    k = np.arange(1, 4)
+    wobble = sum(rng.uniform(0, 0.15) * np.cos(kk * ang + rng.uniform(0, 6.3)) for kk in k)
+    r = radius / math.cos(math.pi / n * 1.2) * (1.0 + np.abs(wobble))
+    return centre + np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+
+
+# ---------------------------------------------------------------------------------------------
+# the renderer
+
+
+@dataclass
+class _Marks:
+    kind: list
+    name: list
+    row: list
+    col: list
+    film: np.ndarray
+    shapes: list
+
+
+def _marks(camera: Camera) -> _Marks:
+    kinds, names, rows, cols, film, shapes = [], [], [], [], [], []
+    if camera.reseau is not None:
+        r = camera.reseau
+        shp = cross_shape(r.arm_length_mm, r.line_width_mm)
+        for (ri, ci), nm, xy in zip(r.row_col(), r.names(), r.film()):
+            kinds.append("reseau")
+            names.append(nm)
+            rows.append(int(ri))
+            cols.append(int(ci))
+            film.append(xy)
+            shapes.append(shp)
+    for f in camera.fiducials:
+        kinds.append("fiducial")
+        names.append(f.name)
+        rows.append(None)
+        cols.append(None)
+        film.append((f.x, f.y))
+        shapes.append(fiducial_shape(f))
+    return _Marks(kinds, names, rows, cols, np.array(film, float).reshape(-1, 2), shapes)
+
+
+def _shape_key(s: MarkShape) -> tuple:
+    return (s.kind, s.rects.round(12).tobytes(), s.discs.round(12).tobytes())
+
+
+def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np.ndarray, dict]:
+    """Render a synthetic scan of a film frame of ``camera`` with its exact truth.
+
+    Parameters
+    ----------
+    camera : Camera or str
+        A :class:`softplot.camera.Camera`, a built-in name or a certificate path.
+    spec : ScanSpec, optional
+        What to render (defaults: ``ScanSpec()``).
+    seed : int
+        Seed of every random choice (deformation, scene, defects, grain, noise): the same
+        seed and spec give the same pixels and truth.
+
+    Returns
+    -------
+    image : ndarray
+        Pixel system, (H, W) or (H, W, 3) RGB; uint8 (bits 8), uint16 (16) or float32 (32).
+    truth : dict
+        The truth record (see ``docs`` of :mod:`softplot.synthetic`): image size, dpi,
+        polarity, every mark's exact pixel position ``x``, ``y`` and state, the complete
+        mapping (``TruthMapping.from_truth``) and the render parameters.
+    """
+    cam = load_camera(camera)
+    spec = (spec or ScanSpec()).validate()
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SoftplotError(f"synthetic scan: seed must be a non-negative integer, got {seed!r}")
+    seed = int(seed)
+    s = spec.dpi / 25.4  # px per mm
+    fw, fh = cam.format_mm
+    deformation = Deformation.random(
+        (fw, fh), spec.deform_um, spec.shrink_ppm, _rng(seed, "deform")
+    )
+
+    # -- frame: format plus margin, centred, then offset and crop --------------------------
+    m = spec.margin_mm
+    t = np.linspace(-1.0, 1.0, 65)
+    ex, ey = fw / 2 + m, fh / 2 + m
+    ring = np.concatenate([
+        np.column_stack([t * ex, np.full_like(t, ey)]),
+        np.column_stack([t * ex, np.full_like(t, -ey)]),
+        np.column_stack([np.full_like(t, ex), t * ey]),
+        np.column_stack([np.full_like(t, -ex), t * ey]),
+    ])
+    sc0 = Scanner(spec.dpi, spec.rotation_deg, spec.anisotropy_ppm, 0.0, 0.0)
+    p = sc0.forward(deformation.forward(ring))
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    width = int(math.ceil(hi[0] - lo[0])) + 1
+    height = int(math.ceil(hi[1] - lo[1])) + 1
+    off = np.ravel(spec.offset_px).astype(float)
+    tx = (width - 1) / 2 - (lo[0] + hi[0]) / 2 + off[0]
+    ty = (height - 1) / 2 - (lo[1] + hi[1]) / 2 + off[1]
+    cl, ct, cr, cb = spec.crop_px(s)
+    tx, ty = tx - cl, ty - ct
+    width, height = width - cl - cr, height - ct - cb
+    if width < 16 or height < 16:
+        raise SoftplotError(f"synthetic scan: crop leaves {max(width, 0)} x {max(height, 0)} px")
+    if width * height > 2_000_000_000:
+        raise SoftplotError(f"synthetic scan: {width} x {height} px is too large")
+    mapping = TruthMapping(
+        deformation, Scanner(spec.dpi, spec.rotation_deg, spec.anisotropy_ppm, tx, ty)
+    )
+
+    # -- marks: exact coverage, states -------------------------------------------------------
+    mk = _marks(cam)
+    n_marks = len(mk.name)
+    xy_px = mapping.film_to_pixel(mk.film) if n_marks else np.zeros((0, 2))
+    groups: dict[tuple, list[int]] = {}
+    for i, shp in enumerate(mk.shapes):
+        groups.setdefault(_shape_key(shp), []).append(i)
+    parts = []
+    for members in groups.values():
+        members = np.array(members)
+        idx, col, row, cov = render_marks(mapping, mk.film[members], mk.shapes[members[0]],
+                                          spec.subrows)
+        parts.append((members[idx], col, row, cov))
+    if parts:
+        m_idx, m_col, m_row, m_cov = (np.concatenate(a) for a in zip(*parts))
+    else:
+        m_idx = m_col = m_row = np.zeros(0, int)
+        m_cov = np.zeros(0)
+    inside = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
+    total = np.bincount(m_idx, weights=m_cov, minlength=n_marks)
+    within = np.bincount(m_idx[inside], weights=m_cov[inside], minlength=n_marks)
+    frac = np.where(total > 0, within / np.where(total > 0, total, 1.0), 0.0)
+    state = np.where(frac >= 1 - 1e-12, "visible", np.where(frac <= 1e-12, "outside", "cut"))
+    state = state.astype(object)
+    # footprint box of each mark (pixels), for the damage test
+    big = np.iinfo(np.int64).max
+    box = np.stack([
+        np.full(n_marks, big), np.full(n_marks, big), np.full(n_marks, -big), np.full(n_marks, -big)
+    ], axis=1)
+    if len(m_idx):
+        np.minimum.at(box[:, 0], m_idx, m_col)
+        np.minimum.at(box[:, 1], m_idx, m_row)
+        np.maximum.at(box[:, 2], m_idx, m_col)
+        np.maximum.at(box[:, 3], m_idx, m_row)
+    halo = int(math.ceil(3 * spec.blur_sigma_px)) + 1
+    box += np.array([-halo, -halo, halo, halo])
+
+    # -- levels ---------------------------------------------------------------------------
+    mark_level = spec.background - spec.contrast  # positive film, fraction of full scale
+    channels = 3 if spec.rgb else 1
+    mask = np.array(ORANGE_MASK if (spec.rgb and spec.polarity == "negative") else (1.0,) * 3)
+    mask = mask[:channels] if channels == 3 else np.ones(1)
+    luma = float(np.dot(LUMA, mask)) if channels == 3 else 1.0
+
+    # -- defects on the film surface (pixel system) -------------------------------------------
+    patches: list[_Patch] = []
+    covered = _choose_cover(spec, mk, state, _rng(seed, "cover"))
+    rng_c = _rng(seed, "cover", 1)
+    jac = mapping.jacobian(mk.film) if n_marks else np.zeros((0, 2, 2))
+    for i in covered:
+        rad = mk.shapes[i].radius_mm * float(np.max(np.linalg.norm(jac[i], axis=1)))
+        need = rad + 3 * spec.blur_sigma_px + 2
+        poly = _blob(xy_px[i] + rng_c.uniform(-0.1, 0.1, 2) * rad, need * 1.12, rng_c)
+        pt = _patch(poly, rng_c.uniform(0.02, 0.25), 1.0, "cover")
+        if pt is not None:
+            patches.append(pt)
+        state[i] = "covered"
+    patches += _dust(spec.dust, width, height, s, _rng(seed, "dust"))
+    patches += _scratches(spec.scratches, width, height, s, _rng(seed, "scratch"))
+    damaged = np.zeros(n_marks, bool)
+    for pt in patches:
+        if pt.kind == "cover":
+            continue
+        ph, pw = pt.alpha.shape
+        cand = np.nonzero(
+            (box[:, 0] <= pt.c0 + pw - 1) & (box[:, 2] >= pt.c0)
+            & (box[:, 1] <= pt.r0 + ph - 1) & (box[:, 3] >= pt.r0)
+        )[0]
+        for i in cand:
+            r0, r1 = max(box[i, 1], pt.r0), min(box[i, 3], pt.r0 + ph - 1) + 1
+            c0, c1 = max(box[i, 0], pt.c0), min(box[i, 2], pt.c0 + pw - 1) + 1
+            if np.any(pt.alpha[r0 - pt.r0 : r1 - pt.r0, c0 - pt.c0 : c1 - pt.c0] > 0.02):
+                damaged[i] = True
+
+    # -- scene ----------------------------------------------------------------------------
+    corners = mapping.pixel_to_film(
+        np.array([[-1, -1], [width, -1], [-1, height], [width, height]], float)
+    )
+    ext = (corners[:, 0].min() - 1, corners[:, 0].max() + 1,
+           corners[:, 1].min() - 1, corners[:, 1].max() + 1)
+    arm = (cam.reseau.arm_length_mm, cam.reseau.line_width_mm) if cam.reseau else (1.0, 0.05)
+    scene = Scene(spec.scene, ext, s, _rng(seed, "scene"), rgb=spec.rgb, avoid_mm=mk.film,
+                  avoid_radius_mm=1.5 * arm[0] + 0.5, cross_mm=arm)
+
+    image = _compose(spec, seed, mapping, scene, (width, height), (fw, fh), s, mark_level,
+                     mask, (m_idx, m_col, m_row, m_cov), patches)
+
+    # -- truth ----------------------------------------------------------------------------
+    local = _local_contrast(scene, mk, spec.contrast) * luma
+    r = cam.reseau
+    if r is not None:
+        lw_mm, arm_mm = r.line_width_mm, r.arm_length_mm
+    elif cam.fiducials:
+        lw_mm, arm_mm = cam.fiducials[0].line_width_mm, cam.fiducials[0].size_mm
+    else:  # pragma: no cover - a certificate always has marks
+        lw_mm, arm_mm = 0.0, 0.0
+    scale_px = s * deformation.scale
+    bg_grey = (1 - spec.background if spec.polarity == "negative" else spec.background) * luma
+    mk_grey = (1 - mark_level if spec.polarity == "negative" else mark_level) * luma
+    marks = []
+    for i in range(n_marks):
+        marks.append({
+            "kind": mk.kind[i],
+            "name": mk.name[i],
+            "row": mk.row[i],
+            "col": mk.col[i],
+            "film_x": float(mk.film[i, 0]),
+            "film_y": float(mk.film[i, 1]),
+            "x": float(xy_px[i, 0]),
+            "y": float(xy_px[i, 1]),
+            "visible": bool(state[i] == "visible"),
+            "state": str(state[i]),
+            "inside_fraction": float(frac[i]),
+            "shape": mk.shapes[i].kind,
+            "contrast": float(local[i, 0]),
+            "contrast_min": float(local[i, 1]),
+            "damaged": bool(damaged[i]),
+        })
+    noise_grey = spec.noise_sigma * (math.sqrt(sum(w * w for w in LUMA)) if channels == 3 else 1.0)
+    truth = {
+        "format": "softplot-synthetic-truth",
+        "version": 1,
+        "image": None,
+        "camera": cam.name,
+        "width": int(width),
+        "height": int(height),
+        "dpi": float(spec.dpi),
+        "polarity": spec.polarity,
+        "bit_depth": int(spec.bits),
+        "channels": int(channels),
+        "seed": seed,
+        "format_mm": [float(fw), float(fh)],
+        "marks": marks,
+        "mapping": mapping.to_dict(),
+        "render": {
+            "units": "fraction of full scale of the grey image (BT.601 luma for RGB)",
+            "blur_sigma_px": float(spec.blur_sigma_px),
+            "noise_sigma": float(noise_grey),
+            "noise_sigma_channel": float(spec.noise_sigma),
+            "grain_sigma": float(spec.grain_sigma),
+            "contrast": float(spec.contrast * luma),
+            "background": float(bg_grey),
+            "mark_level": float(mk_grey),
+            "line_width_px": float(lw_mm * scale_px),
+            "arm_half_length_px": float(arm_mm / 2 * scale_px),
+            "subrows": int(spec.subrows),
+            "orange_mask": [float(v) for v in mask] if channels == 3 else None,
+        },
+        "spec": spec.to_dict(),
+    }
+    return image, truth
+
+
+def _choose_cover(spec: ScanSpec, mk: _Marks, state: np.ndarray, rng) -> list[int]:
+    if isinstance(spec.cover, (tuple, list)):
+        where = {n: i for i, n in enumerate(mk.name)}
+        out = []
+        for n in spec.cover:
+            if n not in where:
+                raise SoftplotError(f"synthetic scan: cannot cover {n!r}: no such mark")
+            if state[where[n]] != "visible":
+                raise SoftplotError(f"synthetic scan: cannot cover {n!r}: it is {state[where[n]]}")
+            out.append(where[n])
+        return out
+    n = int(spec.cover)
+    if n == 0:
+        return []
+    kinds = np.array(mk.kind)
+    pool = np.nonzero((state == "visible") & (kinds == "reseau"))[0]
+    if len(pool) == 0:
+        pool = np.nonzero(state == "visible")[0]
+    if n > len(pool):
+        raise SoftplotError(f"synthetic scan: cannot cover {n} marks, only {len(pool)} visible")
+    return sorted(int(i) for i in rng.choice(pool, n, replace=False))
+
+
+def _dust(n: int, width: int, height: int, s: float, rng) -> list[_Patch]:
+    out = []
+    for _ in range(n):
+        c = rng.uniform([0, 0], [width, height])
+        value = rng.uniform(0.0, 0.15)
+        if rng.uniform() < 0.7:  # speck
+            r = rng.uniform(0.01, 0.08) * s
+            pt = _patch(_blob(c, max(r, 0.7), rng, 12), value, rng.uniform(0.8, 1.0), "dust")
+        else:  # fibre
+            steps = int(rng.integers(4, 12))
+            seg = rng.uniform(0.05, 0.25) * s
+            head = rng.uniform(0, 2 * np.pi) + np.cumsum(rng.normal(0, 0.35, steps))
+            pts = c + np.cumsum(np.column_stack([np.cos(head), np.sin(head)]) * seg, axis=0)
+            pt = _patch(np.vstack([c, pts]), value, rng.uniform(0.7, 1.0), "dust",
+                        thickness=rng.uniform(0.008, 0.025) * s)
+        if pt is not None:
+            out.append(pt)
+    return out
+
+
+def _scratches(n: int, width: int, height: int, s: float, rng) -> list[_Patch]:
+    out = []
+    for _ in range(n):
+        vertical = rng.uniform() < 0.7
+        span = height if vertical else width
+        length = rng.uniform(0.3, 1.0) * span
+        start = rng.uniform(-0.1, 0.6) * span
+        across = rng.uniform(0, width if vertical else height)
+        k = 24
+        along = start + np.linspace(0, length, k)
+        drift = np.cumsum(rng.normal(0, 0.002 * length / k, k)) + np.linspace(0, 1, k) * rng.normal(
+            0, 0.01 * length
+        )
+        pts = np.column_stack([across + drift, along] if vertical else [along, across + drift])
+        bright = rng.uniform() < 0.6
+        pt = _patch(pts, 1.0 if bright else 0.05, rng.uniform(0.3, 0.7), "scratch",
+                    thickness=rng.uniform(0.005, 0.02) * s)
+        if pt is not None:
+            out.append(pt)
+    return out
+
+
+def _local_contrast(scene: Scene, mk: _Marks, contrast: float) -> np.ndarray:
+    """(mean, min) of contrast * g around each mark, over its centre, half-arms and tips."""
+    n = len(mk.name)
+    out = np.zeros((n, 2))
+    if n == 0:
+        return out
+    pts = []
+    for i in range(n):
+        o = mk.shapes[i].outline_mm()
+        rad = mk.shapes[i].radius_mm
+        ring = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7],
+                         [0.7, -0.7], [-0.7, -0.7]]) * rad * 1.15
+        pts.append(np.vstack([ring, o[: min(len(o), 8)] * 0.5]) + mk.film[i])
+    k = len(pts[0])
+    same = all(len(p) == k for p in pts)
+    if same:
+        g = scene.sample_points(np.vstack(pts)).reshape(n, k)
+        out[:, 0] = contrast * g.mean(axis=1)
+        out[:, 1] = contrast * g.min(axis=1)
+    else:
+        for i, p in enumerate(pts):
+            g = scene.sample_points(p)
+            out[i] = contrast * g.mean(), contrast * g.min()
+    return out
+
+
+def _film_maps(mapping: TruthMapping, width: int, height: int):
+    """Exact film mm on a coarse pixel grid, interpolated along x: (Cx_u, Cx_v, node rows)."""
+    nx = (width - 1) // _GRID + 2
+    ny = (height - 1) // _GRID + 2
+    gx, gy = np.meshgrid(np.arange(nx) * _GRID, np.arange(ny) * _GRID)
+    film = mapping.pixel_to_film(np.column_stack([gx.ravel(), gy.ravel()]).astype(float))
+    fu = film[:, 0].reshape(ny, nx)
+    fv = film[:, 1].reshape(ny, nx)
+    x = np.arange(width)
+    i0 = x // _GRID
+    w = ((x - i0 * _GRID) / _GRID)[None, :]
+    cu = fu[:, i0] * (1 - w) + fu[:, i0 + 1] * w
+    cv = fv[:, i0] * (1 - w) + fv[:, i0 + 1] * w
+    return cu, cv
+
+
+def _rows_film(cu: np.ndarray, cv: np.ndarray, r0: int, r1: int):
+    y = np.arange(r0, r1)
+    j0 = y // _GRID
+    w = ((y - j0 * _GRID) / _GRID)[:, None]
+    u = cu[j0] * (1 - w) + cu[j0 + 1] * w
+    v = cv[j0] * (1 - w) + cv[j0 + 1] * w
+    return u, v
+
+
+def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse, patches):
+    width, height = size
+    fw, fh = format_mm
+    channels = 3 if spec.rgb else 1
+    dtype = {8: np.uint8, 16: np.uint16, 32: np.float32}[spec.bits]
+    full = {8: 255.0, 16: 65535.0, 32: 1.0}[spec.bits]
+    out = np.empty((height, width, channels), dtype)
+    sig = spec.blur_sigma_px
+    rad = int(math.ceil(4 * sig)) if sig > 0 else 0
+    halo = rad + 1 if sig > 0 else 0
+    cu, cv = _film_maps(mapping, width, height)
+    m_idx, m_col, m_row, m_cov = sparse
+    keep = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
+    order = np.argsort(m_row[keep], kind="stable")
+    m_col, m_row = m_col[keep][order], m_row[keep][order]
+    m_cov = m_cov[keep][order].astype(np.float32)
+    grain = _BlockNormals(seed, "grain", width, channels) if spec.grain_sigma > 0 else None
+    noise = _BlockNormals(seed, "noise", width, channels) if spec.noise_sigma > 0 else None
+    level = np.float32(mark_level)
+    contrast = np.float32(spec.contrast)
+    mask32 = mask.astype(np.float32)
+    strip = max(_BLOCK, min(8 * _BLOCK, (1 << 21) // max(width, 1) // _BLOCK * _BLOCK))
+    for r0 in range(0, height, strip):
+        r1 = min(height, r0 + strip)
+        a0, a1 = max(0, r0 - halo), min(height, r1 + halo)
+        u, v = _rows_film(cu, cv, a0, a1)
+        g = scene.sample(u, v)
+        val = (level + contrast * g).astype(np.float32)
+        if val.ndim == 2:
+            val = val[:, :, None]
+        # unexposed border outside the format (soft edge, one pixel wide)
+        outside = np.maximum(np.abs(u) - fw / 2, np.abs(v) - fh / 2) * s
+        border = np.clip(0.5 + outside, 0.0, 1.0).astype(np.float32)[:, :, None]
+        val += (level - val) * border
+        # marks (exact coverage)
+        lo, hi = np.searchsorted(m_row, [a0, a1])
+        if hi > lo:
+            rr, cc, cov = m_row[lo:hi] - a0, m_col[lo:hi], m_cov[lo:hi, None]
+            val[rr, cc] += (level - val[rr, cc]) * cov
+        if grain is not None:
+            val += np.float32(spec.grain_sigma) * grain.rows(a0, a1)
+        if spec.polarity == "negative":
+            val = np.float32(1.0) - val
+        if channels == 3:
+            val *= mask32
+        for pt in patches:
+            ph, pw = pt.alpha.shape
+            q0, q1 = max(a0, pt.r0), min(a1, pt.r0 + ph)
+            c0, c1 = max(0, pt.c0), min(width, pt.c0 + pw)
+            if q0 >= q1 or c0 >= c1:
+                continue
+            al = pt.alpha[q0 - pt.r0 : q1 - pt.r0, c0 - pt.c0 : c1 - pt.c0, None]
+            reg = val[q0 - a0 : q1 - a0, c0:c1]
+            reg += (np.float32(pt.value) - reg) * al
+        if sig > 0:
+            k = 2 * rad + 1
+            blurred = cv2.GaussianBlur(val, (k, k), sig, sigmaY=sig,
+                                       borderType=cv2.BORDER_REFLECT_101)
+            if blurred.ndim == 2:
+                blurred = blurred[:, :, None]
+            core = blurred[r0 - a0 : r1 - a0]
+        else:
+            core = val[r0 - a0 : r1 - a0]
+        if noise is not None:
+            core = core + np.float32(spec.noise_sigma) * noise.rows(r0, r1)
+        np.clip(core, 0.0, 1.0, out=core)
+        if spec.bits == 32:
+            out[r0:r1] = core
+        else:
+            out[r0:r1] = (core * np.float32(full) + np.float32(0.5)).astype(dtype)
+    return out[:, :, 0] if channels == 1 else out
