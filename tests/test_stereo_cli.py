@@ -1,0 +1,261 @@
+"""``softplot restitute``: the four modes against the synthetic pair, and bad input."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from softplot.cli import main
+from softplot.synthetic.stereo import aerial_pair
+
+
+def _f(v):
+    return repr(float(v))
+
+
+def _run(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    out = capsys.readouterr()
+    return e.value.code, out.out, out.err
+
+
+def _write(path, header, rows):
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+    return path
+
+
+def _read(path):
+    rows = list(csv.DictReader(path.open()))
+    return rows, {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if k != "name"}
+
+
+@pytest.fixture
+def pair(tmp_path):
+    t = aerial_pair(seed=31, deform=False)
+    t.x0[:] = 0.0  # the CLI takes photo mm reduced to the principal point
+    t.y0[:] = 0.0
+    rows = [
+        [nm, *t.X0[k], *np.rad2deg(t.angles[k]), t.c[k]] for k, nm in enumerate(("left", "right"))
+    ]
+    photos = _write(
+        tmp_path / "photos.csv",
+        ["photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c"],
+        [[r[0]] + [_f(v) for v in r[1:]] for r in rows],
+    )
+    return t, photos
+
+
+def test_single_mode(pair, tmp_path, capsys):
+    t, photos = pair
+    P = t.sample_points(25, seed=2)
+    xy1, xy2 = t.photo(0, P), t.photo(1, P)
+    inp = _write(
+        tmp_path / "in.csv",
+        ["name", "x2", "y2", "x1"],
+        [
+            [f"p{i}", _f(a), _f(b), _f(c)]
+            for i, (a, b, c) in enumerate(zip(xy2[:, 0], xy2[:, 1], xy1[:, 0], strict=True))
+        ],
+    )
+    code, out, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "single",
+            "--points",
+            str(inp),
+            "--out",
+            str(tmp_path / "o.csv"),
+        ],
+        capsys,
+    )
+    assert code == 0, err
+    rows, c = _read(tmp_path / "o.csv")
+    assert list(rows[0]) == ["name", "x1", "y1", "x2", "y2", "X", "Y", "Z", "py"]
+    assert np.max(np.abs(c["y1"] - xy1[:, 1])) < 1e-9
+    assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) < 1e-6
+    assert np.max(np.abs(c["py"])) < 1e-9
+
+
+def test_contour_free_drive_to(pair, tmp_path, capsys):
+    t, photos = pair
+    H = 310.0
+    C = t.contour_truth(H, 16)
+    xy2 = t.photo(1, C)
+    inp = _write(
+        tmp_path / "c.csv",
+        ["name", "x2", "y2"],
+        [[f"c{i}", _f(a), _f(b)] for i, (a, b) in enumerate(xy2)],
+    )
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "contour",
+            "--points",
+            str(inp),
+            "--height",
+            str(H),
+            "--out",
+            str(tmp_path / "oc.csv"),
+        ],
+        capsys,
+    )
+    assert code == 0, err
+    _, c = _read(tmp_path / "oc.csv")
+    assert np.max(np.abs(c["Z"] - H)) < 1e-6
+    assert np.max(np.hypot(c["X"] - C[:, 0], c["Y"] - C[:, 1])) < 1e-6
+
+    P = t.sample_points(10, seed=4)
+    xy1, xy2 = t.photo(0, P), t.photo(1, P)
+    xy1[:, 1] += 0.01  # 10 um of y-parallax
+    inp = _write(
+        tmp_path / "f.csv",
+        ["name", "x1", "y1", "x2", "y2"],
+        [[f"f{i}", *map(_f, np.r_[a, b])] for i, (a, b) in enumerate(zip(xy1, xy2, strict=True))],
+    )
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "free",
+            "--points",
+            str(inp),
+            "--out",
+            str(tmp_path / "of.csv"),
+        ],
+        capsys,
+    )
+    assert code == 0, err
+    _, c = _read(tmp_path / "of.csv")
+    assert np.allclose(c["py"], 0.01, atol=1e-9)
+    assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) < 1.0
+
+    inp = _write(
+        tmp_path / "d.csv",
+        ["name", "X", "Y", "Z"],
+        [[f"d{i}", *map(_f, p)] for i, p in enumerate(P)],
+    )
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "drive-to",
+            "--points",
+            str(inp),
+            "--out",
+            str(tmp_path / "od.csv"),
+        ],
+        capsys,
+    )
+    assert code == 0, err
+    _, c = _read(tmp_path / "od.csv")
+    assert np.max(np.abs(np.c_[c["x2"], c["y2"]] - xy2)) < 1e-9
+
+
+def test_bad_input_one_line_errors(pair, tmp_path, capsys):
+    t, photos = pair
+    good = _write(tmp_path / "in.csv", ["name", "x2", "y2"], [["a", "1.0", "2.0"]])
+    cases = [
+        (["--mode", "contour", "--points", str(good)], "needs --height"),
+        (["--mode", "single", "--points", str(good)], "missing column(s) x1"),
+        (
+            ["--mode", "contour", "--height", "300", "--points", str(tmp_path / "nope.csv")],
+            "cannot read points file",
+        ),
+        (["--mode", "free", "--points", str(good), "--height", "3"], "missing column"),
+    ]
+    for extra, msg in cases:
+        code, _, err = _run(
+            ["restitute", "--photos", str(photos), "--out", str(tmp_path / "o.csv"), *extra], capsys
+        )
+        assert code == 2 and msg in err and err.count("\n") == 1, err
+    bad = _write(tmp_path / "b.csv", ["name", "x2", "y2"], [["a", "1.0", "zz"]])
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "contour",
+            "--height",
+            "300",
+            "--points",
+            str(bad),
+            "--out",
+            str(tmp_path / "o.csv"),
+        ],
+        capsys,
+    )
+    assert code == 2 and "line 2" in err
+    one = _write(
+        tmp_path / "one.csv",
+        ["photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c"],
+        [["l", 0, 0, 1000, 0, 0, 0, 150]],
+    )
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(one),
+            "--mode",
+            "contour",
+            "--height",
+            "300",
+            "--points",
+            str(good),
+            "--out",
+            str(tmp_path / "o.csv"),
+        ],
+        capsys,
+    )
+    assert code == 2 and "exactly 2 rows" in err
+    before = good.read_bytes()
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "contour",
+            "--height",
+            "300",
+            "--points",
+            str(good),
+            "--out",
+            str(good),
+        ],
+        capsys,
+    )
+    assert code == 2 and "overwrite an input" in err and good.read_bytes() == before
+    code, _, err = _run(
+        [
+            "restitute",
+            "--photos",
+            str(photos),
+            "--mode",
+            "contour",
+            "--height",
+            "5000",
+            "--points",
+            str(good),
+            "--out",
+            str(tmp_path / "o.csv"),
+        ],
+        capsys,
+    )
+    assert code == 2 and "behind the right camera" in err
