@@ -195,20 +195,29 @@ class Plotter:
         return (float(p[0]), float(p[1]))
 
     def _single_film(self, x1f, y1f, x2, y2, h=1e-3):
-        """Left film y that puts the corrected left point on the epipolar line (Newton)."""
+        """Left film y that puts the corrected left point on the epipolar line.
+
+        Newton on ``g(y) = y_photo - y_epipolar(x_photo)`` with the slope taken once by a
+        finite difference (chord method: film corrections are smooth and near-identity, so
+        an affine one converges in one step); stops when ``|g| < 1e-12`` photo mm.
+        """
         left = self.model.left
-        f = self.fast
-        for _ in range(6):
-            p = left.film_to_photo([[x1f, y1f], [x1f, y1f + h]])
-            g0 = p[0, 1] - f.single(x2, y2, p[0, 0])[0]
-            g1 = p[1, 1] - f.single(x2, y2, p[1, 0])[0]
-            step = -g0 * h / (g1 - g0)
-            y1f += step
-            if abs(step) < 1e-13:
+        single = self.fast.single
+        p = left.film_to_photo([[x1f, y1f], [x1f, y1f + h]])
+        g0 = p[0, 1] - single(x2, y2, p[0, 0])[0]
+        g1 = p[1, 1] - single(x2, y2, p[1, 0])[0]
+        slope = (g1 - g0) / h
+        g = g0
+        px, py_ = p[0, 0], p[0, 1]
+        for _ in range(8):
+            if abs(g) < 1e-12:
                 break
-        p = left.film_to_photo([[x1f, y1f]])[0]
-        x1 = float(p[0])
-        y1, XX, YY, ZZ = f.single(x2, y2, x1)
+            y1f -= g / slope
+            q = left.film_to_photo([[x1f, y1f]])
+            px, py_ = q[0, 0], q[0, 1]
+            g = py_ - single(x2, y2, px)[0]
+        x1 = float(px)
+        y1, XX, YY, ZZ = single(x2, y2, x1)
         return x1, y1, y1f, XX, YY, ZZ
 
     def drive_to(self, X: float, Y: float, Z: float) -> Cycle:
