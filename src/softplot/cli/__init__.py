@@ -22,6 +22,11 @@ COMMANDS = [
     "info",
     "restitute",
     "motors",
+    "resect",
+    "intersect",
+    "relor",
+    "absor",
+    "pc",
 ]
 
 
