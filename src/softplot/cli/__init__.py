@@ -19,14 +19,18 @@ from softplot.errors import SoftplotError
 #: sub-command modules of :mod:`softplot.cli`, each exposing ``command``
 COMMANDS = [
     "cameras",
+    "synth",
+    "demo",
     "info",
     "restitute",
     "motors",
+    "plot",
     "resect",
     "intersect",
     "relor",
     "absor",
     "pc",
+    "correct",
 ]
 
 

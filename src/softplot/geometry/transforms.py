@@ -646,7 +646,7 @@ def _dlt(s: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
     r1 = np.stack([x, y, o, z, z, z, -X * x, -X * y, -X], axis=-1)
     r2 = np.stack([z, z, z, x, y, o, -Y * x, -Y * y, -Y], axis=-1)
     A = np.concatenate([r1, r2]) * np.sqrt(np.concatenate([w, w]))[:, None]
-    _, sv, Vt = np.linalg.svd(A)
+    _, sv, Vt = np.linalg.svd(A, full_matrices=A.shape[0] < 9)
     h = Vt[-1]
     if abs(h[8]) < 1e-12 * np.abs(h).max():
         raise SoftplotError(

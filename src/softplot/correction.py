@@ -1,0 +1,540 @@
+"""Film correction of one scan: marks -> correction model -> film / photo coordinates.
+
+The facade the CLI and the pipeline use. It wires a camera certificate, the measured marks
+(a detection JSON of ``softplot detect`` or a fresh :func:`softplot.marks.detect`), a
+correction method of :mod:`softplot.geometry.models` and the interior orientation of
+:mod:`softplot.orientation.interior`:
+
+    pixel (px) --correction model--> film (mm) --interior orientation--> photo (mm)
+
+and provides the points CSV reader/writer, the cross-validation report and the resampling of
+a scan onto the calibrated film grid (:func:`resample`, :func:`write_resampled`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softplot.camera import Camera, load_camera
+from softplot.errors import SoftplotError
+from softplot.geometry.crossval import CrossValidation, cross_validate
+from softplot.geometry.mesh import FLAG_NAMES, FLAG_OUTSIDE_IMAGE
+from softplot.geometry.models import (
+    METHODS,
+    CorrectionModel,
+    ReferenceMarks,
+    build_model,
+)
+from softplot.orientation.interior import InteriorOrientation
+
+__all__ = [
+    "FilmCorrection",
+    "marks_from_detection",
+    "load_detection",
+    "detect_marks",
+    "read_points_csv",
+    "write_points_csv",
+    "compare",
+    "resample",
+    "film_maps",
+    "default_pixel_size",
+    "write_resampled",
+    "Resampled",
+    "METHODS",
+]
+
+
+# ---------------------------------------------------------------------------------------------
+# marks
+
+
+def load_detection(path: str | Path) -> dict:
+    """Read a detection JSON (issue-3 format); errors name the file and the problem."""
+    p = Path(path)
+    if not p.is_file():
+        raise SoftplotError(f"{p}: detection file not found")
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise SoftplotError(f"{p}: not a readable JSON file: {exc}") from None
+    if not isinstance(d, dict) or not isinstance(d.get("marks"), list):
+        raise SoftplotError(f"{p}: not a detection result (no 'marks' list)")
+    d.setdefault("_source", str(p))
+    return d
+
+
+def marks_from_detection(camera: Camera | str, detection: dict) -> ReferenceMarks:
+    """Reference marks from a detection dict: certificate film mm + measured pixel positions.
+
+    Marks are matched by name (``R<row>C<col>`` or the fiducial's name; for crosses ``row``
+    and ``col`` are used when present). Only marks with status "measured" and finite
+    ``x``, ``y`` count as measured; everything else is NaN (missing).
+    """
+    cam = load_camera(camera)
+    where = detection.get("_source", "detection")
+    grid_film = grid_px = None
+    if cam.reseau is not None:
+        R = cam.reseau
+        grid_film = R.film().reshape(R.rows, R.cols, 2)
+        grid_px = np.full((R.rows, R.cols, 2), np.nan)
+    fid_names = tuple(f.name for f in cam.fiducials)
+    fid_film = cam.fiducial_film()
+    fid_px = np.full((len(fid_names), 2), np.nan)
+    n_cross = n_fid = 0
+    for i, m in enumerate(detection["marks"]):
+        if not isinstance(m, dict):
+            raise SoftplotError(f"{where}: marks[{i}] is not an object")
+        if m.get("status", "measured") != "measured":
+            continue
+        x, y = m.get("x"), m.get("y")
+        if x is None or y is None:
+            continue
+        try:
+            x, y = float(x), float(y)
+        except (TypeError, ValueError):
+            raise SoftplotError(f"{where}: marks[{i}]: x, y must be numbers") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        kind = m.get("kind", "reseau" if m.get("row") is not None else "fiducial")
+        if kind == "reseau":
+            if grid_px is None:
+                raise SoftplotError(
+                    f"{where}: has reseau crosses but camera {cam.name} has no reseau"
+                )
+            r, c = m.get("row"), m.get("col")
+            if r is None or c is None:
+                name = str(m.get("name", ""))
+                try:
+                    r, c = (int(v) for v in name[1:].split("C"))
+                except ValueError:
+                    raise SoftplotError(
+                        f"{where}: marks[{i}]: cross without row/col and name {name!r}"
+                    ) from None
+            r, c = int(r), int(c)
+            if not (0 <= r < grid_px.shape[0] and 0 <= c < grid_px.shape[1]):
+                raise SoftplotError(
+                    f"{where}: cross R{r}C{c} is outside the {grid_px.shape[0]} x "
+                    f"{grid_px.shape[1]} reseau of camera {cam.name}: wrong camera?"
+                )
+            grid_px[r, c] = (x, y)
+            n_cross += 1
+        else:
+            name = str(m.get("name", ""))
+            if name in fid_names:
+                fid_px[fid_names.index(name)] = (x, y)
+                n_fid += 1
+    if n_cross == 0 and n_fid == 0:
+        raise SoftplotError(f"{where}: no measured marks for camera {cam.name}")
+    return ReferenceMarks(grid_film, grid_px, fid_film, fid_px, fid_names)
+
+
+def detect_marks(scan, camera: Camera | str) -> dict:
+    """Detect the marks of a scan (path or Scan) with :func:`softplot.marks.detect`."""
+    from softplot.marks import detect
+
+    return detect(scan, camera).to_json()
+
+
+# ---------------------------------------------------------------------------------------------
+# the correction of one scan
+
+
+class FilmCorrection:
+    """Pixel -> film -> photo for one scan.
+
+    Parameters
+    ----------
+    camera : Camera or str
+        The certificate.
+    marks : ReferenceMarks
+        Calibrated film mm and measured pixel positions of the reference marks.
+    method : str
+        One of :data:`METHODS` (default ``mesh``: the camera's mesh; without a reseau,
+        ``affine`` over the fiducials).
+    image_size : (int, int), optional
+        Scan width and height (px): points outside it are flagged ``outside-image``.
+    """
+
+    def __init__(self, camera, marks: ReferenceMarks, method: str = "mesh", image_size=None):
+        self.camera = load_camera(camera)
+        if method == "mesh" and not marks.has_grid:
+            method = "affine"
+        self.marks = marks
+        self.model: CorrectionModel = build_model(method, marks)
+        self.method = self.model.method
+        self.interior = InteriorOrientation(self.camera)
+        self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+
+    @classmethod
+    def from_detection(cls, camera, detection: dict, method: str = "mesh") -> "FilmCorrection":
+        """From a detection dict (uses its ``width``/``height`` for ``outside-image``)."""
+        marks = marks_from_detection(camera, detection)
+        size = None
+        if detection.get("width") and detection.get("height"):
+            size = (int(detection["width"]), int(detection["height"]))
+        return cls(camera, marks, method, size)
+
+    def _image_flags(self, xy: np.ndarray, flags: np.ndarray) -> np.ndarray:
+        if self.image_size is None:
+            return flags
+        w, h = self.image_size
+        out = ~(
+            (xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5)
+        )
+        flags = flags.copy()
+        flags[out] = FLAG_OUTSIDE_IMAGE
+        return flags
+
+    def pixel_to(self, xy_px, to: str = "film") -> tuple[np.ndarray, np.ndarray]:
+        """Pixel (N, 2) -> film or photo (N, 2) mm, and flags (N,) uint8.
+
+        Flags: 0 ok, 1 outside-reseau, 2 outside-image (:data:`FLAG_NAMES`).
+        """
+        if to not in ("film", "photo"):
+            raise SoftplotError(f"--to must be film or photo, got {to!r}")
+        p = np.asarray(xy_px, float).reshape(-1, 2)
+        post = self.interior.film_to_photo_xy if to == "photo" else None
+        out, flags = self.model.pixel_to_film(p, post)
+        return out, self._image_flags(p, flags)
+
+    def to_pixel(self, xy_mm, frm: str = "film") -> tuple[np.ndarray, np.ndarray]:
+        """Film or photo (N, 2) mm -> pixel (N, 2), and flags (N,) uint8."""
+        f = np.asarray(xy_mm, float).reshape(-1, 2)
+        if frm == "photo":
+            f = self.interior.photo_to_film(f)
+        elif frm != "film":
+            raise SoftplotError(f"frm must be film or photo, got {frm!r}")
+        px, flags = self.model.film_to_pixel(f)
+        return px, self._image_flags(px, flags)
+
+    def pixel_to_photo_point(self, x: float, y: float) -> tuple[float, float, int]:
+        """One pixel point -> (photo x mm, photo y mm, flag): plain floats (plotter cycle)."""
+        fx, fy, flag = self.model.pixel_to_film_point(x, y)
+        px, py = self.interior.film_to_photo_point(fx, fy)
+        if self.image_size is not None:
+            w, h = self.image_size
+            if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
+                flag = FLAG_OUTSIDE_IMAGE
+        return px, py, flag
+
+    def describe(self) -> str:
+        return f"{self.model.describe()}; interior: {self.interior.describe()}"
+
+
+def compare(camera, marks: ReferenceMarks, methods=None) -> CrossValidation:
+    """Cross-validation of every method over the marks (see :mod:`softplot.geometry.crossval`)."""
+    load_camera(camera)
+    return cross_validate(marks, methods)
+
+
+# ---------------------------------------------------------------------------------------------
+# points CSV
+
+
+def read_points_csv(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """Read ``name,x,y`` (pixels) from a CSV with a header; errors name the line.
+
+    Extra columns are ignored; blank lines and lines starting with ``#`` are skipped.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SoftplotError(f"{p}: points file not found")
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SoftplotError(f"{p}: cannot read: {exc}") from None
+    rows = list(csv.reader(text.splitlines()))
+    header = None
+    names: list[str] = []
+    xy: list[tuple[float, float]] = []
+    for lineno, row in enumerate(rows, start=1):
+        cells = [c.strip() for c in row]
+        if not cells or all(c == "" for c in cells) or cells[0].startswith("#"):
+            continue
+        if header is None:
+            header = [c.lower() for c in cells]
+            missing = [c for c in ("name", "x", "y") if c not in header]
+            if missing:
+                raise SoftplotError(
+                    f"{p}: line {lineno}: missing column {', '.join(repr(m) for m in missing)} "
+                    f"(header has {', '.join(header) or 'nothing'}; need name,x,y)"
+                )
+            ix, iy, iname = header.index("x"), header.index("y"), header.index("name")
+            continue
+        if len(cells) < len(header):
+            raise SoftplotError(
+                f"{p}: line {lineno}: {len(cells)} columns, the header has {len(header)}"
+            )
+        vals = []
+        for col, i in (("x", ix), ("y", iy)):
+            try:
+                v = float(cells[i])
+            except ValueError:
+                raise SoftplotError(
+                    f"{p}: line {lineno}: {col} is not a number: {cells[i]!r}"
+                ) from None
+            if not math.isfinite(v):
+                raise SoftplotError(f"{p}: line {lineno}: {col} is not finite: {cells[i]!r}")
+            vals.append(v)
+        names.append(cells[iname])
+        xy.append((vals[0], vals[1]))
+    if header is None:
+        raise SoftplotError(f"{p}: empty points file (need a header name,x,y)")
+    return names, np.array(xy, float).reshape(-1, 2)
+
+
+def write_points_csv(path: str | Path, names, xy_mm: np.ndarray, flags: np.ndarray) -> Path:
+    """Write ``name,x,y,flag`` (mm, 6 decimals = 1 nm) to a new file (never overwrites)."""
+    p = Path(path)
+    if p.exists():
+        raise SoftplotError(f"{p}: exists; refusing to overwrite")
+    tmp = p.with_name(f".{p.name}.part")
+    with open(tmp, "w", encoding="utf-8", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", "x", "y", "flag"])
+        for n, (x, y), f in zip(names, np.asarray(xy_mm), np.asarray(flags), strict=True):
+            w.writerow([n, f"{x:.6f}", f"{y:.6f}", FLAG_NAMES[int(f)]])
+    tmp.replace(p)
+    return p
+
+
+# ---------------------------------------------------------------------------------------------
+# resampling onto the film grid
+
+
+@dataclass
+class Resampled:
+    """A film-flattened image and its pixel <-> film relation.
+
+    Output pixel (row i, column j) - its centre - lies at film
+    ``x = x_min + (j + 0.5) * pixel_size``, ``y = y_max - (i + 0.5) * pixel_size`` (mm).
+    """
+
+    image: np.ndarray
+    pixel_size_mm: float
+    x_min_mm: float
+    y_max_mm: float
+    method: str
+
+    @property
+    def affine(self) -> list[list[float]]:
+        """2 x 3 matrix (column, row of a pixel centre, 1) -> film mm."""
+        ps = self.pixel_size_mm
+        return [
+            [ps, 0.0, self.x_min_mm + 0.5 * ps],
+            [0.0, -ps, self.y_max_mm - 0.5 * ps],
+        ]
+
+    def georef(self) -> dict:
+        h, w = self.image.shape[:2]
+        return {
+            "system": "film",
+            "units": "mm",
+            "method": self.method,
+            "width": int(w),
+            "height": int(h),
+            "pixel_size_mm": self.pixel_size_mm,
+            "x_min_mm": self.x_min_mm,
+            "y_max_mm": self.y_max_mm,
+            "pixel_centre_to_film": self.affine,
+            "convention": (
+                "film x = x_min_mm + (col + 0.5) * pixel_size_mm, "
+                "film y = y_max_mm - (row + 0.5) * pixel_size_mm; (col, row) = (0, 0) is the "
+                "centre of the top-left pixel; film x right, y up, mm"
+            ),
+        }
+
+
+def _film_grid(camera: Camera, ps: float) -> tuple[int, int, float, float]:
+    w, h = camera.format_mm
+    nx = max(int(round(w / ps)), 1)
+    ny = max(int(round(h / ps)), 1)
+    return nx, ny, -nx * ps / 2.0, ny * ps / 2.0
+
+
+def _map_homography_mesh(model, nx, ny, x_min, y_max, ps):
+    """Exact film -> pixel maps (float32) for a homography mesh, cell by cell."""
+    mesh = model.mesh
+    H = mesh.film_cell_homographies()  # (K, 3, 3) film -> pixel
+    plane = mesh._film  # film plane: raw film -> (s, t) homographies
+    T = plane.to_raw  # (K, 3, 3)
+    rows, cols = mesh.rows, mesh.cols
+    mapx = np.empty((ny, nx), np.float32)
+    mapy = np.empty((ny, nx), np.float32)
+    xs = x_min + (np.arange(nx) + 0.5) * ps
+    ys = y_max - (np.arange(ny) + 0.5) * ps
+    Q = mesh.film_quads()  # (K, 4, 2)
+    eps = 1e-9
+    for k in range(Q.shape[0]):
+        r, c = divmod(k, cols - 1)
+        qx, qy = Q[k, :, 0], Q[k, :, 1]
+        # block: the quad's bounding box, extended to the grid edge for border cells
+        x0 = -np.inf if c == 0 else qx.min()
+        x1 = np.inf if c == cols - 2 else qx.max()
+        y1 = np.inf if r == 0 else qy.max()
+        y0 = -np.inf if r == rows - 2 else qy.min()
+        j0 = int(np.searchsorted(xs, x0 - ps))
+        j1 = int(np.searchsorted(xs, x1 + ps))
+        i0 = int(np.searchsorted(-ys, -(y1 + ps)))
+        i1 = int(np.searchsorted(-ys, -(y0 - ps)))
+        if j1 <= j0 or i1 <= i0:
+            continue
+        bx = xs[j0:j1][None, :]
+        by = ys[i0:i1][:, None]
+        t = T[k]
+        w = t[2, 0] * bx + (t[2, 1] * by + t[2, 2])
+        s_ = (t[0, 0] * bx + (t[0, 1] * by + t[0, 2])) / w
+        t_ = (t[1, 0] * bx + (t[1, 1] * by + t[1, 2])) / w
+        own = np.ones(s_.shape, bool)
+        if c > 0:
+            own &= s_ >= -eps
+        if c < cols - 2:
+            own &= s_ <= 1 + eps
+        if r > 0:
+            own &= t_ >= -eps
+        if r < rows - 2:
+            own &= t_ <= 1 + eps
+        if not own.any():
+            continue
+        h = H[k]
+        w = h[2, 0] * bx + (h[2, 1] * by + h[2, 2])
+        X = (h[0, 0] * bx + (h[0, 1] * by + h[0, 2])) / w
+        Y = (h[1, 0] * bx + (h[1, 1] * by + h[1, 2])) / w
+        np.copyto(mapx[i0:i1, j0:j1], X, where=own, casting="same_kind")
+        np.copyto(mapy[i0:i1, j0:j1], Y, where=own, casting="same_kind")
+    return mapx, mapy
+
+
+def _map_generic(model, nx, ny, x_min, y_max, ps, rows_per_chunk=64):
+    """Film -> pixel maps through ``model.film_to_pixel``, in row chunks."""
+    mapx = np.empty((ny, nx), np.float32)
+    mapy = np.empty((ny, nx), np.float32)
+    xs = x_min + (np.arange(nx) + 0.5) * ps
+    for i0 in range(0, ny, rows_per_chunk):
+        i1 = min(i0 + rows_per_chunk, ny)
+        ys = y_max - (np.arange(i0, i1) + 0.5) * ps
+        gx, gy = np.meshgrid(xs, ys)
+        px = model.film_to_pixel(np.column_stack([gx.ravel(), gy.ravel()]))[0]
+        mapx[i0:i1] = px[:, 0].reshape(i1 - i0, nx)
+        mapy[i0:i1] = px[:, 1].reshape(i1 - i0, nx)
+    return mapx, mapy
+
+
+def film_maps(correction: FilmCorrection, pixel_size_mm: float):
+    """(mapx, mapy, x_min, y_max): scan pixel of every output pixel centre (float32)."""
+    cam = correction.camera
+    nx, ny, x_min, y_max = _film_grid(cam, pixel_size_mm)
+    if nx * ny > 2**31 - 1 or nx > 32767 or ny > 32767:
+        raise SoftplotError(
+            f"--pixel-size {pixel_size_mm * 1000:g} um gives a {nx} x {ny} image: too large"
+        )
+    model = correction.model
+    if model.method == "mesh-homography":
+        mapx, mapy = _map_homography_mesh(model, nx, ny, x_min, y_max, pixel_size_mm)
+    else:
+        mapx, mapy = _map_generic(model, nx, ny, x_min, y_max, pixel_size_mm)
+    return mapx, mapy, x_min, y_max
+
+
+def default_pixel_size(correction: FilmCorrection, dpi: float | None) -> float:
+    """Output pixel size (mm): the scan's pixel size (25.4 / dpi), else measured from the
+    marks (the mean scale of the correction model)."""
+    if dpi:
+        return 25.4 / float(dpi)
+    f, p, _ = correction.marks.reference()
+    if f.shape[0] >= 2:
+        df = np.hypot(*(f[:, None] - f[None]).reshape(-1, 2).T)
+        dp = np.hypot(*(p[:, None] - p[None]).reshape(-1, 2).T)
+        ok = dp > 0
+        return float(np.median(df[ok] / dp[ok]))
+    raise SoftplotError("cannot tell the pixel size: give --pixel-size")
+
+
+def resample(
+    data: np.ndarray,
+    correction: FilmCorrection,
+    pixel_size_mm: float,
+    interpolation: str = "linear",
+) -> Resampled:
+    """Resample scan pixels (H, W) or (H, W, C) onto the calibrated film grid.
+
+    One :func:`cv2.remap` through the correction (the mesh): output pixel (i, j) takes the
+    scan at ``film_to_pixel`` of its film centre (:class:`Resampled` gives the relation).
+    Outside the scan the output is 0. The dtype and channels of ``data`` are kept.
+    """
+    import cv2
+
+    if not (pixel_size_mm > 0 and math.isfinite(pixel_size_mm)):
+        raise SoftplotError(f"pixel size must be positive, got {pixel_size_mm!r} mm")
+    interp = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
+    if interpolation not in interp:
+        raise SoftplotError(f"interpolation must be one of {', '.join(interp)}")
+    mapx, mapy, x_min, y_max = film_maps(correction, pixel_size_mm)
+    src = np.ascontiguousarray(data)
+    if src.dtype == np.bool_:
+        src = src.astype(np.uint8) * 255
+    if src.ndim == 3 and src.shape[2] > 4:
+        raise SoftplotError(f"cannot resample an image with {src.shape[2]} channels")
+    if max(src.shape[:2]) >= 32767:
+        raise SoftplotError("scans of 32767 px or more per side cannot be resampled (OpenCV)")
+    out = cv2.remap(src, mapx, mapy, interp[interpolation], borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0)
+    if out.ndim == 2 and src.ndim == 3:
+        out = out[..., None]
+    return Resampled(out, float(pixel_size_mm), float(x_min), float(y_max), correction.method)
+
+
+def write_resampled(
+    path: str | Path, res: Resampled, extra: dict | None = None
+) -> tuple[Path, Path]:
+    """Write the film-flattened TIFF and its JSON sidecar ``<path>.json``; never overwrites.
+
+    TIFF tags: ``ModelPixelScaleTag`` (33550) = (ps, ps, 0) and ``ModelTiepointTag`` (33922)
+    = (0, 0, 0, x_min, y_max, 0): raster corner (0, 0) - the outer corner of the top-left
+    pixel - is film (x_min, y_max) mm (GeoTIFF "PixelIsArea" layout, no GeoKeyDirectory: the
+    film plane is not a map projection); ``XResolution``/``YResolution`` = 25.4 / ps dpi;
+    ``ImageDescription`` = the sidecar's JSON.
+    """
+    import tifffile
+
+    p = Path(path)
+    side = p.with_name(p.name + ".json")
+    for q in (p, side):
+        if q.exists():
+            raise SoftplotError(f"{q}: exists; refusing to overwrite")
+    if p.suffix.lower() not in (".tif", ".tiff"):
+        raise SoftplotError(f"{p}: the resampled image is a TIFF: use a .tif or .tiff name")
+    meta = res.georef()
+    if extra:
+        meta.update(extra)
+    meta["image"] = p.name
+    text = json.dumps(meta, indent=1)
+    ps = res.pixel_size_mm
+    img = res.image
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    photometric = "rgb" if img.ndim == 3 and img.shape[2] in (3, 4) else "minisblack"
+    dpi = 25.4 / ps
+    tmp = p.with_name(f".{p.name}.part")
+    tifffile.imwrite(
+        tmp,
+        img,
+        photometric=photometric,
+        resolution=(dpi, dpi),
+        resolutionunit="INCH",
+        description=json.dumps(meta),
+        extratags=[
+            (33550, "d", 3, (ps, ps, 0.0), True),
+            (33922, "d", 6, (0.0, 0.0, 0.0, res.x_min_mm, res.y_max_mm, 0.0), True),
+        ],
+        metadata=None,
+    )
+    tmp.replace(p)
+    side.write_text(text + "\n", encoding="utf-8")
+    return p, side
