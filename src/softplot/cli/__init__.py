@@ -21,6 +21,8 @@ COMMANDS = [
     "cameras",
     "synth",
     "demo",
+    "synth",
+    "demo",
     "info",
     "restitute",
     "motors",

@@ -179,7 +179,7 @@ class Deformation:
                     "freq_per_mm": [float(f[0]), float(f[1])],
                     "phase_rad": float(p),
                 }
-                for a, f, p in zip(self.amp, self.freq, self.phase)
+                for a, f, p in zip(self.amp, self.freq, self.phase, strict=False)
             ],
         }
 

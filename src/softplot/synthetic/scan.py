@@ -302,7 +302,7 @@ def _marks(camera: Camera) -> _Marks:
     if camera.reseau is not None:
         r = camera.reseau
         shp = cross_shape(r.arm_length_mm, r.line_width_mm)
-        for (ri, ci), nm, xy in zip(r.row_col(), r.names(), r.film()):
+        for (ri, ci), nm, xy in zip(r.row_col(), r.names(), r.film(), strict=False):
             kinds.append("reseau")
             names.append(nm)
             rows.append(int(ri))
@@ -392,35 +392,35 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
     groups: dict[tuple, list[int]] = {}
     for i, shp in enumerate(mk.shapes):
         groups.setdefault(_shape_key(shp), []).append(i)
+    curved = deformation.amp.size > 0
     parts = []
+    post_blur = False
     for members in groups.values():
         members = np.array(members)
-        idx, col, row, cov = render_marks(mapping, mk.film[members], mk.shapes[members[0]],
-                                          spec.subrows)
-        parts.append((members[idx], col, row, cov))
+        idx, col, row, val, post_blur = render_marks(
+            mapping, mk.film[members], mk.shapes[members[0]], spec.blur_sigma_px,
+            spec.subrows, curvature=curved,
+        )
+        parts.append((members[idx], col, row, val))
     if parts:
-        m_idx, m_col, m_row, m_cov = (np.concatenate(a) for a in zip(*parts))
+        m_idx, m_col, m_row, m_val = (np.concatenate(a) for a in zip(*parts, strict=True))
     else:
         m_idx = m_col = m_row = np.zeros(0, int)
-        m_cov = np.zeros(0)
+        m_val = np.zeros(0)
     inside = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
-    total = np.bincount(m_idx, weights=m_cov, minlength=n_marks)
-    within = np.bincount(m_idx[inside], weights=m_cov[inside], minlength=n_marks)
-    frac = np.where(total > 0, within / np.where(total > 0, total, 1.0), 0.0)
-    state = np.where(frac >= 1 - 1e-12, "visible", np.where(frac <= 1e-12, "outside", "cut"))
-    state = state.astype(object)
-    # footprint box of each mark (pixels), for the damage test
-    big = np.iinfo(np.int64).max
-    box = np.stack([
-        np.full(n_marks, big), np.full(n_marks, big), np.full(n_marks, -big), np.full(n_marks, -big)
-    ], axis=1)
-    if len(m_idx):
-        np.minimum.at(box[:, 0], m_idx, m_col)
-        np.minimum.at(box[:, 1], m_idx, m_row)
-        np.maximum.at(box[:, 2], m_idx, m_col)
-        np.maximum.at(box[:, 3], m_idx, m_row)
+    total = np.bincount(m_idx, weights=m_val, minlength=n_marks)
+    within = np.bincount(m_idx[inside], weights=m_val[inside], minlength=n_marks)
+    frac = np.clip(np.where(total > 0, within / np.where(total > 0, total, 1.0), 0.0), 0, 1)
+    # geometry: every outline point of the mark (exact mapping) inside the pixel area?
+    box = np.zeros((n_marks, 4), int)
+    geom_in = np.zeros(n_marks, bool)
     halo = int(math.ceil(3 * spec.blur_sigma_px)) + 1
-    box += np.array([-halo, -halo, halo, halo])
+    for i in range(n_marks):
+        o = mapping.film_to_pixel(mk.shapes[i].outline_mm() + mk.film[i])
+        geom_in[i] = bool(np.all((o >= -0.5) & (o <= np.array([width, height]) - 0.5)))
+        lo_, hi_ = np.floor(o.min(axis=0)).astype(int), np.ceil(o.max(axis=0)).astype(int)
+        box[i] = (lo_[0] - halo, lo_[1] - halo, hi_[0] + halo, hi_[1] + halo)
+    state = np.where(geom_in, "visible", np.where(frac <= 1e-6, "outside", "cut")).astype(object)
 
     # -- levels ---------------------------------------------------------------------------
     mark_level = spec.background - spec.contrast  # positive film, fraction of full scale
@@ -470,7 +470,7 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
                   avoid_radius_mm=1.5 * arm[0] + 0.5, cross_mm=arm)
 
     image = _compose(spec, seed, mapping, scene, (width, height), (fw, fh), s, mark_level,
-                     mask, (m_idx, m_col, m_row, m_cov), patches)
+                     mask, (m_idx, m_col, m_row, m_val), post_blur, patches)
 
     # -- truth ----------------------------------------------------------------------------
     local = _local_contrast(scene, mk, spec.contrast) * luma
@@ -522,6 +522,12 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
         "render": {
             "units": "fraction of full scale of the grey image (BT.601 luma for RGB)",
             "blur_sigma_px": float(spec.blur_sigma_px),
+            "psf": (
+                "marks: Gaussian(blur_sigma_px) * unit pixel box, exact before sampling; "
+                "scene: sampled, then Gaussian(blur_sigma_px)"
+                if post_blur else "area-sampled, then Gaussian(blur_sigma_px)"
+            ),
+            "edge_sigma_px": float(math.sqrt(spec.blur_sigma_px**2 + (1 / 12 if post_blur else 0))),
             "noise_sigma": float(noise_grey),
             "noise_sigma_channel": float(spec.noise_sigma),
             "grain_sigma": float(spec.grain_sigma),
@@ -635,11 +641,11 @@ def _film_maps(mapping: TruthMapping, width: int, height: int):
     ny = (height - 1) // _GRID + 2
     gx, gy = np.meshgrid(np.arange(nx) * _GRID, np.arange(ny) * _GRID)
     film = mapping.pixel_to_film(np.column_stack([gx.ravel(), gy.ravel()]).astype(float))
-    fu = film[:, 0].reshape(ny, nx)
-    fv = film[:, 1].reshape(ny, nx)
+    fu = film[:, 0].reshape(ny, nx).astype(np.float32)
+    fv = film[:, 1].reshape(ny, nx).astype(np.float32)
     x = np.arange(width)
     i0 = x // _GRID
-    w = ((x - i0 * _GRID) / _GRID)[None, :]
+    w = ((x - i0 * _GRID) / _GRID).astype(np.float32)[None, :]
     cu = fu[:, i0] * (1 - w) + fu[:, i0 + 1] * w
     cv = fv[:, i0] * (1 - w) + fv[:, i0 + 1] * w
     return cu, cv
@@ -648,13 +654,14 @@ def _film_maps(mapping: TruthMapping, width: int, height: int):
 def _rows_film(cu: np.ndarray, cv: np.ndarray, r0: int, r1: int):
     y = np.arange(r0, r1)
     j0 = y // _GRID
-    w = ((y - j0 * _GRID) / _GRID)[:, None]
+    w = ((y - j0 * _GRID) / _GRID).astype(np.float32)[:, None]
     u = cu[j0] * (1 - w) + cu[j0 + 1] * w
     v = cv[j0] * (1 - w) + cv[j0 + 1] * w
     return u, v
 
 
-def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse, patches):
+def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse,
+             post_blur, patches):
     width, height = size
     fw, fh = format_mm
     channels = 3 if spec.rgb else 1
@@ -665,11 +672,12 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     rad = int(math.ceil(4 * sig)) if sig > 0 else 0
     halo = rad + 1 if sig > 0 else 0
     cu, cv = _film_maps(mapping, width, height)
-    m_idx, m_col, m_row, m_cov = sparse
+    m_idx, m_col, m_row, m_val = sparse
     keep = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
     order = np.argsort(m_row[keep], kind="stable")
     m_col, m_row = m_col[keep][order], m_row[keep][order]
-    m_cov = m_cov[keep][order].astype(np.float32)
+    m_val = m_val[keep][order].astype(np.float32)
+    sign = np.float32(-1.0 if spec.polarity == "negative" else 1.0)
     grain = _BlockNormals(seed, "grain", width, channels) if spec.grain_sigma > 0 else None
     noise = _BlockNormals(seed, "noise", width, channels) if spec.noise_sigma > 0 else None
     level = np.float32(mark_level)
@@ -688,11 +696,17 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
         outside = np.maximum(np.abs(u) - fw / 2, np.abs(v) - fh / 2) * s
         border = np.clip(0.5 + outside, 0.0, 1.0).astype(np.float32)[:, :, None]
         val += (level - val) * border
-        # marks (exact coverage)
-        lo, hi = np.searchsorted(m_row, [a0, a1])
-        if hi > lo:
-            rr, cc, cov = m_row[lo:hi] - a0, m_col[lo:hi], m_cov[lo:hi, None]
-            val[rr, cc] += (level - val[rr, cc]) * cov
+        # marks: exact coverage before the blur, or the exactly blurred marks after it
+        if post_blur:
+            lo, hi = np.searchsorted(m_row, [r0, r1])
+            rr, cc, mv = m_row[lo:hi] - a0, m_col[lo:hi], m_val[lo:hi, None]
+            mark_amp = level - val[rr, cc]  # (k, C): mark minus background, positive film
+            trans = np.ones((a1 - a0, width, 1), np.float32)
+        else:
+            lo, hi = np.searchsorted(m_row, [a0, a1])
+            if hi > lo:
+                rr, cc, cov = m_row[lo:hi] - a0, m_col[lo:hi], m_val[lo:hi, None]
+                val[rr, cc] += (level - val[rr, cc]) * cov
         if grain is not None:
             val += np.float32(spec.grain_sigma) * grain.rows(a0, a1)
         if spec.polarity == "negative":
@@ -708,6 +722,8 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
             al = pt.alpha[q0 - pt.r0 : q1 - pt.r0, c0 - pt.c0 : c1 - pt.c0, None]
             reg = val[q0 - a0 : q1 - a0, c0:c1]
             reg += (np.float32(pt.value) - reg) * al
+            if post_blur:
+                trans[q0 - a0 : q1 - a0, c0:c1] *= 1 - al
         if sig > 0:
             k = 2 * rad + 1
             blurred = cv2.GaussianBlur(val, (k, k), sig, sigmaY=sig,
@@ -716,7 +732,10 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
                 blurred = blurred[:, :, None]
             core = blurred[r0 - a0 : r1 - a0]
         else:
-            core = val[r0 - a0 : r1 - a0]
+            core = val[r0 - a0 : r1 - a0].copy()
+        if post_blur and hi > lo:
+            amp = sign * mask32 * mark_amp * trans[rr, cc]
+            core[rr - (r0 - a0), cc] += amp * mv
         if noise is not None:
             core = core + np.float32(spec.noise_sigma) * noise.rows(r0, r1)
         np.clip(core, 0.0, 1.0, out=core)

@@ -28,7 +28,9 @@ from softplot.errors import SoftplotError
 SCENES = ("none", "texture", "busy")
 
 
-def _fractal(shape: tuple[int, int], rng: np.random.Generator, octaves: tuple[int, ...]) -> np.ndarray:
+def _fractal(
+    shape: tuple[int, int], rng: np.random.Generator, octaves: tuple[int, ...]
+) -> np.ndarray:
     """Zero-mean, unit-std fractal noise raster of ``shape`` (rows, cols), float32."""
     ny, nx = shape
     out = np.zeros(shape, np.float32)
@@ -114,7 +116,9 @@ class Scene:
     def _to_raster(self, xy_mm: np.ndarray) -> np.ndarray:
         """Raster (col, row) coordinates of film mm points (film y up, raster rows down)."""
         xy = np.asarray(xy_mm, float)
-        return np.column_stack([(xy[:, 0] - self.x0) / self.pitch, (xy[:, 1] - self.y0) / self.pitch])
+        return np.column_stack(
+            [(xy[:, 0] - self.x0) / self.pitch, (xy[:, 1] - self.y0) / self.pitch]
+        )
 
     def _busy(self, g, rng, avoid_mm, avoid_radius_mm, cross_mm):
         ny, nx = g.shape
@@ -139,7 +143,7 @@ class Scene:
             centres,
             rng.uniform(0.3, 4.0, (n_blocks, 2)) * scale,
             rng.uniform(0, math.pi, n_blocks),
-            rng.uniform(0.4, 1.6, n_blocks),
+            rng.uniform(0.4, 1.6, n_blocks), strict=False,
         ):
             c, s = math.cos(ang), math.sin(ang)
             hw, hh = sz / 2
@@ -163,8 +167,9 @@ class Scene:
             cv2.polylines(g, [fix(np.array(pts))], False, val, width, cv2.LINE_8, shift)
         # discs (trees, tanks)
         n_discs = 80
+        radii = rng.uniform(0.05, 0.6, n_discs) * scale
         for (cx, cy), r, val in zip(
-            rand_xy(n_discs), rng.uniform(0.05, 0.6, n_discs) * scale, rng.uniform(0.4, 1.6, n_discs)
+            rand_xy(n_discs), radii, rng.uniform(0.4, 1.6, n_discs), strict=True
         ):
             ctr = fix(np.array([[cx, cy]]))[0]
             cv2.circle(g, (int(ctr[0]), int(ctr[1])), int(r / self.pitch * one), float(val), -1,
@@ -173,13 +178,12 @@ class Scene:
         arm, lw = cross_mm
         cand = rand_xy(200)
         if avoid_mm is not None and len(avoid_mm):
-            d = np.min(
-                np.hypot(cand[:, None, 0] - avoid_mm[None, :, 0], cand[:, None, 1] - avoid_mm[None, :, 1]),
-                axis=1,
-            )
+            dx = cand[:, None, 0] - avoid_mm[None, :, 0]
+            dy = cand[:, None, 1] - avoid_mm[None, :, 1]
+            d = np.min(np.hypot(dx, dy), axis=1)
             cand = cand[d > avoid_radius_mm]
         width = max(1, int(round(lw / self.pitch)))
-        for (cx, cy), val in zip(cand[:30], rng.choice([0.4, 1.6], 30)):
+        for (cx, cy), val in zip(cand[:30], rng.choice([0.4, 1.6], 30), strict=False):
             for dx, dy in ((arm / 2, 0.0), (0.0, arm / 2)):
                 seg = fix(np.array([[cx - dx, cy - dy], [cx + dx, cy + dy]]))
                 cv2.line(g, tuple(int(v) for v in seg[0]), tuple(int(v) for v in seg[1]),
@@ -211,10 +215,11 @@ class Scene:
             return np.repeat(g[..., None], 3, axis=2)
         mx = ((ux - self.x0) / self.pitch).astype(np.float32)
         my = ((uy - self.y0) / self.pitch).astype(np.float32)
-        return np.stack(
-            [g * cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT) for t in self.tint],
-            axis=2,
-        )
+        layers = [
+            g * cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            for t in self.tint
+        ]
+        return np.stack(layers, axis=2)
 
     def sample_points(self, xy_mm: np.ndarray) -> np.ndarray:
         """Grey scene factor (N,) at film mm points (N, 2)."""
