@@ -39,6 +39,8 @@ class VirtualMotors(Motors):
     slack_steps : tuple of int
         Simulated mechanical backlash per axis (steps); the *physical* plate position
         (:meth:`plate_steps`) lags the motor by up to this much after a reversal.
+    left_offset : (float, float)
+        Fixed offset of the left plate (instrument mm), as the plotter's ``left_offset``.
     """
 
     def __init__(
@@ -49,11 +51,13 @@ class VirtualMotors(Motors):
         image_map: Callable[[np.ndarray], np.ndarray] | None = None,
         simulate_time: bool = False,
         slack_steps: tuple[int, int] = (0, 0),
+        left_offset: tuple[float, float] = (0.0, 0.0),
     ):
         super().__init__(dx, dy)
         self.image_map = image_map
         self.simulate_time = simulate_time
         self.slack_steps = tuple(int(s) for s in slack_steps)
+        self.left_offset = (float(left_offset[0]), float(left_offset[1]))
         self._motor = [0, 0]
         self._phys = [0, 0]  # physical plate steps (slack model)
         self._move = None  # (start motor, end motor, t0, duration)
@@ -131,10 +135,11 @@ class VirtualMotors(Motors):
         return tuple(self._phys)
 
     def left_film(self) -> tuple[float, float]:
-        """Left film position under the floating mark: main carriage + DX, DY (instrument mm)."""
+        """Left film position under the floating mark: main carriage + ``left_offset`` +
+        DX, DY (instrument mm)."""
         dx, dy = self.position()
         x, y = self._main
-        return (x + dx, y + dy)
+        return (x + self.left_offset[0] + dx, y + self.left_offset[1] + dy)
 
     def sampling_position(self) -> np.ndarray:
         """Where the left image is sampled under the floating mark.

@@ -5,7 +5,9 @@ in single-point mode, turns the x-parallax handwheel; every cycle the computer w
 left-plate position that puts the floating mark on the model and commands the secondary
 carriage (DX, DY) of the left plate through the :class:`~softplot.motors.base.Motors`
 interface. All carriage values are **instrument (film) mm**: the right film point under the
-mark is ``(X, Y)``, the left one ``(X + DX, Y + DY)``. Each photo's film correction
+mark is ``(X, Y)``, the left one ``(X + BX + DX, Y + BY + DY)`` where ``(BX, BY)`` is the
+fixed offset of the left plate holder (``left_offset``, default 0: the secondary carriage's
+travel is small, so an aerial pair's mean x-parallax belongs in BX). Each photo's film correction
 (:attr:`OrientedPhoto.to_photo`) maps them to photo mm for the stereo model.
 
 Modes (:data:`MODES`):
@@ -82,6 +84,9 @@ class Plotter:
         Called with every finished :class:`~softplot.export.features.Feature`.
     on_fault : callable, optional
         Called with the fault message when the motors fail.
+    left_offset : (float, float)
+        Fixed offset (BX, BY) of the left plate, instrument mm: left film =
+        main carriage + offset + (DX, DY).
     """
 
     def __init__(
@@ -93,6 +98,7 @@ class Plotter:
         height: float | None = None,
         on_feature: Callable[[Feature], None] | None = None,
         on_fault: Callable[[str], None] | None = None,
+        left_offset: tuple[float, float] = (0.0, 0.0),
     ):
         self.model = model
         self.fast = model.fast()
@@ -100,6 +106,7 @@ class Plotter:
         self.on_feature = on_feature
         self.on_fault = on_fault
         self.identity = model.left.to_photo is None and model.right.to_photo is None
+        self.left_offset = (float(left_offset[0]), float(left_offset[1]))
         self.mode = "single"
         self.height = None
         self.set_mode(mode, height)
@@ -145,9 +152,11 @@ class Plotter:
         mot = self.motors
         mot.set_main(X, Y)
         mode = self.mode
+        bx, by = self.left_offset
+        Xl, Yl = X + bx, Y + by  # left film under the mark with DX = DY = 0
         if mode == "free":
             DX, DY = mot.position()
-            r = self.model.free(self._to_photo(0, X + DX, Y + DY), self._to_photo(1, X, Y))
+            r = self.model.free(self._to_photo(0, Xl + DX, Yl + DY), self._to_photo(1, X, Y))
             x1, y1 = r.xy1[0]
             x2, y2 = r.xy2[0]
             cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, tuple(r.XYZ[0]), float(r.py[0]))
@@ -157,25 +166,25 @@ class Plotter:
             f = self.fast
             if mode == "single":
                 DX = mot.target()[0] if px is None else px
-                x1 = X + DX
+                x1 = Xl + DX
                 y1, XX, YY, ZZ = f.single(X, Y, x1)
-                DY = y1 - Y
+                DY = y1 - Yl
             else:
                 ZZ = self.height
                 x1, y1, XX, YY = f.contour(X, Y, ZZ)
-                DX, DY = x1 - X, y1 - Y
+                DX, DY = x1 - Xl, y1 - Yl
             x2, y2 = X, Y
         else:
             x2, y2 = self._to_photo(1, X, Y)
             if mode == "single":
                 DX = mot.target()[0] if px is None else px
-                x1, y1, y1f, XX, YY, ZZ = self._single_film(X + DX, Y + mot.target()[1], x2, y2)
-                DY = y1f - Y
+                x1, y1, y1f, XX, YY, ZZ = self._single_film(Xl + DX, Yl + mot.target()[1], x2, y2)
+                DY = y1f - Yl
             else:
                 ZZ = self.height
                 x1, y1, XX, YY = self.fast.contour(x2, y2, ZZ)
                 fx, fy = self.model.left.photo_to_film([[x1, y1]])[0]
-                DX, DY = fx - X, fy - Y
+                DX, DY = fx - Xl, fy - Yl
         in_travel = True
         try:
             mot.move_to(DX, DY, wait=False)
@@ -233,7 +242,7 @@ class Plotter:
         (x1, y1), (x2, y2) = r.xy1[0], r.xy2[0]
         fx2, fy2 = self.model.right.photo_to_film([[x2, y2]])[0]
         fx1, fy1 = self.model.left.photo_to_film([[x1, y1]])[0]
-        DX, DY = fx1 - fx2, fy1 - fy2
+        DX, DY = fx1 - fx2 - self.left_offset[0], fy1 - fy2 - self.left_offset[1]
         self.motors.set_main(fx2, fy2)
         in_travel = True
         try:

@@ -30,9 +30,9 @@ from pathlib import Path
 
 from softplot.errors import SoftplotError
 from softplot.export.features import Feature
-from softplot.motors.base import Motors
+from softplot.motors.base import MotorFault, Motors
 from softplot.stereo.model import OrientedPhoto, StereoModel
-from softplot.stereo.plotter import Plotter
+from softplot.stereo.plotter import Plotter, PlotterHalted
 
 __all__ = ["Session", "SESSION_FILE", "JOURNAL_FILE"]
 
@@ -92,9 +92,13 @@ class Session:
         *,
         mode: str = "single",
         height: float | None = None,
+        left_offset: tuple[float, float] = (0.0, 0.0),
         exist_ok: bool = False,
     ) -> "Session":
-        """Start a new session in ``folder`` (created; must not hold a session already)."""
+        """Start a new session in ``folder`` (created; must not hold a session already).
+
+        ``left_offset`` is the fixed offset of the left plate (see :class:`Plotter`).
+        """
         folder = Path(folder)
         if (folder / SESSION_FILE).exists() and not exist_ok:
             raise SoftplotError(f"{folder} already holds a session: resume it or choose another")
@@ -109,6 +113,7 @@ class Session:
             "right": model.right.to_dict(),
             "mode": mode,
             "height": height,
+            "left_offset": [float(left_offset[0]), float(left_offset[1])],
         }
         corr = {
             side: (p.to_photo, p.to_film)
@@ -167,7 +172,19 @@ class Session:
         s._replay()
         s._append({"type": "resume"})
         if motors is not None and s.motor_state is not None:
-            motors.restore(s.motor_state)
+            try:
+                motors.restore(s.motor_state)
+            except MotorFault as exc:
+                msg = f"motor fault while restoring the motor state: {exc}"
+                try:
+                    motors.stop()
+                    msg += "; motors stopped"
+                except Exception as stop_exc:  # noqa: BLE001 - report, never mask the fault
+                    msg += f"; stopping failed too ({stop_exc})"
+                msg += f"; session kept ({len(s.features)} features recorded)"
+                s.fault(msg)
+                s.close()
+                raise PlotterHalted(msg) from exc
         return s
 
     def _replay(self) -> None:
@@ -249,6 +266,7 @@ class Session:
             height=self.height,
             on_feature=on_feature,
             on_fault=on_fault,
+            left_offset=tuple(self.meta.get("left_offset", (0.0, 0.0))),
         )
         pl.features = list(self.features)
         return pl

@@ -1,0 +1,183 @@
+"""``softplot plot``: scripted plotting sessions (new, trace, resume, export)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from softplot.cli.restitute import PHOTO_COLUMNS, _read_csv
+from softplot.errors import SoftplotError
+
+
+@click.group("plot")
+def command() -> None:
+    """Plotting sessions in a project folder: operator input from CSV, journal, export."""
+
+
+def _motors(port: str | None, timeout: float):
+    from softplot.motors import AxisConfig, VirtualMotors
+
+    if port:
+        from softplot.motors.grbl import GrblMotors
+
+        return GrblMotors(port, timeout=timeout)
+    fine = AxisConfig(resolution_mm=1e-6, min_mm=-500, max_mm=500, max_speed_mm_s=1e9)
+    return VirtualMotors(fine, fine)
+
+
+@command.command("new")
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option(
+    "--photos",
+    "photos_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Two rows, left first: photo,X0,Y0,Z0,omega,phi,kappa,c (degrees, mm).",
+)
+@click.option(
+    "--mode", type=click.Choice(["single", "contour", "free"]), default="single", show_default=True
+)
+@click.option("--height", type=float, default=None, help="Contour height (contour mode).")
+@click.option(
+    "--left-offset",
+    nargs=2,
+    type=float,
+    default=(0.0, 0.0),
+    show_default=True,
+    metavar="BX BY",
+    help="Fixed offset of the left plate, instrument mm (left film "
+    "= main carriage + offset + DX, DY).",
+)
+def new(folder, photos_path, mode, height, left_offset):
+    """Start a session in FOLDER from an oriented pair."""
+    from softplot.stereo import OrientedPhoto, Session, StereoModel
+
+    names, ph = _read_csv(photos_path, PHOTO_COLUMNS, "photos file")
+    if len(names) != 2:
+        raise SoftplotError(f"photos file {photos_path} needs exactly 2 rows (left, right)")
+    model = StereoModel(
+        *[
+            OrientedPhoto(r[0:3], np.deg2rad(r[3:6]), r[6], name=n)
+            for n, r in zip(names, ph, strict=True)
+        ]
+    )
+    if mode == "contour" and height is None:
+        raise SoftplotError("contour mode needs --height")
+    Session.create(folder, model, mode=mode, height=height, left_offset=left_offset).close()
+    click.echo(f"session created in {folder} ({mode})")
+
+
+@command.command("trace")
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option(
+    "--input",
+    "input_path",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Operator input CSV: X,Y (main carriage, instrument mm) and px "
+    "(x-parallax handwheel, single mode).",
+)
+@click.option("--code", required=True, help="Feature code (DXF layer).")
+@click.option(
+    "--kind",
+    type=click.Choice(["point", "line", "contour"]),
+    default="point",
+    show_default=True,
+    help="point: one spot height per row; line/contour: one feature through all rows.",
+)
+@click.option(
+    "--mode",
+    type=click.Choice(["single", "contour", "free"]),
+    default=None,
+    help="Switch mode first (default: the session's).",
+)
+@click.option("--height", type=float, default=None, help="Contour height.")
+@click.option("--close", "close_line", is_flag=True, help="Close the line/contour.")
+@click.option(
+    "--port",
+    default=None,
+    help="Drive a GRBL instrument on this serial port instead of the virtual motors.",
+)
+@click.option("--timeout", type=float, default=5.0, show_default=True)
+def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout):
+    """Run the plotter over scripted operator input and record features in FOLDER."""
+    from softplot.stereo import Session
+
+    with _motors(port, timeout) as mot:
+        s = Session.resume(folder, motors=mot)
+        try:
+            if mode is not None or height is not None:
+                s.set_mode(mode or s.mode, height if height is not None else s.height)
+            if kind == "contour" and s.mode != "contour":
+                raise SoftplotError(
+                    "contours are traced in contour mode (--mode contour --height H)"
+                )
+            if s.mode == "contour" and s.height is None:
+                raise SoftplotError("contour mode needs --height")
+            cols = ("name", "X", "Y", "px") if s.mode == "single" else ("name", "X", "Y")
+            names, v = _read_csv(input_path, cols, "input file")
+            if not names:
+                raise SoftplotError(f"input file {input_path} has no rows")
+            pl = s.plotter(mot)
+            if kind != "point":
+                pl.begin(code, kind)
+            for name, row in zip(names, v, strict=True):
+                cyc = pl.cycle(row[0], row[1], row[2] if s.mode == "single" else None)
+                if kind == "point":
+                    pl.record_point(code, name=name)
+                else:
+                    pl.vertex()
+                if not cyc.in_travel:
+                    click.echo(f"warning: {name}: DX/DY outside the travel", err=True)
+            if kind != "point":
+                pl.end(close=close_line)
+            if port:
+                mot.wait(timeout)
+            click.echo(f"{len(names)} input row(s) -> {len(s.features)} feature(s) in {folder}")
+        finally:
+            s.close()
+
+
+@command.command("resume")
+@click.argument("folder", type=click.Path(path_type=Path))
+def resume(folder):
+    """Re-open a session and summarise it (mode, features by code, faults)."""
+    from softplot.stereo import Session
+
+    s = Session.resume(folder)
+    try:
+        by = {}
+        for f in s.features:
+            by.setdefault((f.code, f.kind), 0)
+            by[(f.code, f.kind)] += 1
+        click.echo(f"mode {s.mode}" + (f", height {s.height:g}" if s.height is not None else ""))
+        for (code, kind), n in sorted(by.items()):
+            click.echo(f"  {code:<16} {kind:<8} {n}")
+        click.echo(f"{len(s.features)} feature(s), {len(s.faults)} fault(s)")
+        for msg in s.faults[-3:]:
+            click.echo(f"  fault: {msg}")
+    finally:
+        s.close()
+
+
+@command.command("export")
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.argument("out", type=click.Path(path_type=Path))
+def export(folder, out):
+    """Write the session's features to OUT (.dxf, .geojson or .csv)."""
+    from softplot.stereo import Session
+
+    s = Session.resume(folder)
+    try:
+        own = {
+            (Path(folder) / n).resolve()
+            for n in ("session.json", "journal.jsonl", "corrections.pkl")
+        }
+        if out.resolve() in own:
+            raise SoftplotError(f"{out} would overwrite a session file: choose another path")
+        s.export(out)
+        click.echo(f"{len(s.features)} feature(s) -> {out}")
+    finally:
+        s.close()
