@@ -106,10 +106,11 @@ def dense_system(model, state):
     return np.vstack(blocks), np.concatenate(rows), ev
 
 
-@pytest.mark.parametrize("dense_limit", [4000, 0])
-def test_damped_step_matches_dense_normal_equations(dense_limit):
+@pytest.mark.parametrize("dense_limit,tilde", [(4000, False), (4000, True), (0, False)])
+def test_damped_step_matches_dense_normal_equations(dense_limit, tilde):
     prob, _ = synthetic_bal()
     model = Anchored(prob, dense_limit=dense_limit)
+    model.structure.tilde_ok = tilde  # pair GEMMs or one dense product for W V^-1 W'
     state = (prob.cameras.copy(), prob.points.copy())
     J, r, ev = dense_system(model, state)
     lin = Linearization(model.structure, ev)
@@ -127,13 +128,14 @@ def test_damped_step_matches_dense_normal_equations(dense_limit):
     assert lin.model_decrease(dc, dp) == pytest.approx(pred, rel=1e-8)
 
 
-def test_covariance_blocks_match_dense_inverse():
+@pytest.mark.parametrize("dense_product_limit", [4e9, 0.0])
+def test_covariance_blocks_match_dense_inverse(dense_product_limit):
     prob, _ = synthetic_bal(n_cam=4, n_pts=40)
     model = Anchored(prob)
     res = levenberg_marquardt(model, (prob.cameras.copy(), prob.points.copy()))
     J, r, ev = dense_system(model, res.state)
     Q = np.linalg.inv(J.T @ J)
-    inv = NormalInverse(res.linearization)
+    inv = NormalInverse(res.linearization, chunk=97, dense_product_limit=dense_product_limit)
     st = model.structure
     nc = st.n_cam
     assert np.allclose(inv.Qcc, Q[:nc, :nc], rtol=1e-6, atol=1e-12)

@@ -110,6 +110,9 @@ class SchurStructure:
         ``False`` for point coordinates held constant (a datum or a height-only tie).
     dense_limit : int
         Largest ``n_cam`` solved by dense Cholesky; beyond, sparse LU (SuperLU).
+    tilde_limit : float
+        Largest ``(n_cam + 1) * 3 n_pts`` for which ``W V^-1 W'`` may be one dense product
+        (chosen when cheaper than the pair GEMMs: many rays per point, few cameras).
     """
 
     def __init__(
@@ -122,6 +125,7 @@ class SchurStructure:
         d: int = 2,
         point_free=None,
         dense_limit: int = 4000,
+        tilde_limit: float = 2e7,
     ) -> None:
         self.n_cam = int(n_cam)
         self.n_pts = int(n_pts)
@@ -154,6 +158,7 @@ class SchurStructure:
         self.obs_cols = self.group_params[self.obs_group]
         self._build_groups()
         self._build_pairs()
+        self._build_tilde(tilde_limit)
 
     # -- observations by group (for U)
     def _build_groups(self) -> None:
@@ -204,6 +209,35 @@ class SchurStructure:
         self.s_flat = (r * N1 + c).ravel()  # block (g1, g2)
         self.s_flat_t = (c * N1 + r).ravel()  # its transpose (g2, g1), used where g1 != g2
         self.offdiag = np.repeat(g1b != g2b, k * k)
+
+    def _build_tilde(self, tilde_limit: float) -> None:
+        """Decide between pair GEMMs and one dense product for ``W V^-1 W'``."""
+        N1, P3 = self.n_cam + 1, 3 * self.n_pts
+        pair_cost = 3.0 * self.k * self.k * self.pair1.size
+        dense_cost = float(N1) * N1 * P3 / 10.0  # BLAS runs ~10x faster than gathers
+        self.tilde_ok = bool(self.n_pts and N1 * P3 <= tilde_limit and dense_cost < pair_cost)
+        has = self.obs_point >= 0
+        rows = np.repeat(self.obs_cols[:, :, None], 3, axis=2)
+        cols = np.minimum(self.pt_ext, max(self.n_pts - 1, 0))[:, None, None] * 3 + np.arange(3)
+        cols = np.broadcast_to(cols, rows.shape)
+        self._tilde_has = has
+        self._tilde_rows, self._tilde_cols = rows, cols
+        self._tilde_flat = (rows * max(P3, 1) + cols)[has].ravel() if self.tilde_ok else None
+
+    def tilde(self, Y: np.ndarray) -> np.ndarray:
+        """Per-observation blocks (k, m, 3) summed into a dense (n_cam+1, 3 n_pts) matrix.
+
+        Column block ``j`` is ``sum_{o of point j} E_o Y_o`` (row ``n_cam`` is the dummy slot,
+        zeroed).
+        """
+        N1, P3 = self.n_cam + 1, 3 * self.n_pts
+        flat = self._tilde_flat
+        if flat is None:
+            flat = (self._tilde_rows * P3 + self._tilde_cols)[self._tilde_has].ravel()
+        Yo = Y.transpose(1, 0, 2)[self._tilde_has].ravel()
+        T = np.bincount(flat, weights=Yo, minlength=N1 * P3).reshape(N1, P3)
+        T[self.n_cam] = 0.0
+        return T
 
     @property
     def n_unknowns(self) -> int:
@@ -271,6 +305,7 @@ class Linearization:
     def __init__(self, st: SchurStructure, ev: Evaluation) -> None:
         self.st = st
         self.ev = ev
+        self._Wt = None
         m, k, N1 = st.m, st.k, st.n_cam + 1
         r, Jc, Jp = ev.r, ev.Jc, ev.Jp
         Jc = np.where((st.obs_cols == st.n_cam)[:, None, :], 0.0, Jc)  # constant slots
@@ -374,7 +409,8 @@ class Linearization:
         else:
             Y = self.W
         # pair blocks: sum over shared points of Y_o1 W_o2'
-        blocks = self._pair_blocks(Y, self.W)
+        use_tilde = st.dense and st.tilde_ok
+        blocks = None if use_tilde else self._pair_blocks(Y, self.W)
         # right-hand side
         gpo = self.gp[np.minimum(st.pt_ext, max(st.n_pts - 1, 0))] if st.n_pts else None
         b = -self.gc.copy()
@@ -383,14 +419,22 @@ class Linearization:
             yg[st.obs_point < 0] = 0.0
             b += np.bincount(st.obs_cols.ravel(), weights=yg.ravel(), minlength=N1)[: st.n_cam]
         lc = np.broadcast_to(np.asarray(lam_c, float), (st.n_cam,))
-        bl = blocks.ravel()
-        if st.dense:
+        if use_tilde:
+            # one dense product: S = U - Ytilde Wtilde'
+            if self._Wt is None:
+                self._Wt = st.tilde(self.W)
+            S = self.U_flat.reshape(N1, N1) - st.tilde(Y) @ self._Wt.T
+            S = S[: st.n_cam, : st.n_cam]
+            S[np.diag_indices(st.n_cam)] += lc + self.Udiag_extra[: st.n_cam]
+        elif st.dense:
+            bl = blocks.ravel()
             S = self.U_flat.copy()
             S -= np.bincount(st.s_flat, weights=bl, minlength=N1 * N1)
             S -= np.bincount(st.s_flat_t[st.offdiag], weights=bl[st.offdiag], minlength=N1 * N1)
             S = S.reshape(N1, N1)[: st.n_cam, : st.n_cam]
             S[np.diag_indices(st.n_cam)] += lc + self.Udiag_extra[: st.n_cam]
         else:
+            bl = blocks.ravel()
             flat = np.concatenate([st.u_flat, st.s_flat, st.s_flat_t[st.offdiag]])
             vals = np.concatenate([self.Ug.ravel(), -bl, -bl[st.offdiag]])
             rr, cc = np.divmod(flat, N1)
@@ -657,7 +701,10 @@ class NormalInverse:
         When the reduced system is singular (an undetermined datum or parameter).
     """
 
-    def __init__(self, lin: Linearization, chunk: int = 20000) -> None:
+    def __init__(
+        self, lin: Linearization, chunk: int = 20000, dense_product_limit: float = 4e9
+    ) -> None:
+        self.dense_product_limit = dense_product_limit
         self.lin = lin
         st = lin.st
         self.st = st
@@ -728,23 +775,35 @@ class NormalInverse:
     def cross_blocks(self) -> np.ndarray:
         """``Q[cols_o, point_o]`` for every observation, shape (m, k, 3) (zero without point).
 
-        ``Qcp_j = -Qcc W_j V_j^-1``, summed over the observations of each point.
+        ``Qcp_j = -Qcc W_j V_j^-1``: either one dense product ``Qcc @ [W V^-1]`` (when
+        ``n_cam^2 * 3 n_pts`` is moderate) or sums over the pairs of observations of each point.
         """
         if self._cross is not None:
             return self._cross
         st = self.st
-        k = st.k
-        Qe = np.zeros((st.n_cam + 1, st.n_cam + 1))
+        k, N1 = st.k, st.n_cam + 1
+        m = st.m
+        Qe = np.zeros((N1, N1))
         Qe[: st.n_cam, : st.n_cam] = self.Qcc
-        out = np.zeros((st.m, k, 3))
-        a, b = st.opair1, st.opair2
-        for s in range(0, a.size, self.chunk):
-            aa, bb = a[s : s + self.chunk], b[s : s + self.chunk]
-            ca, cb = st.obs_cols[aa], st.obs_cols[bb]
-            Qab = Qe[ca[:, :, None], cb[:, None, :]]  # (n, k, k)
-            Yb = self.Y[:, bb, :].transpose(1, 0, 2)  # (n, k, 3)
-            contrib = -np.matmul(Qab, Yb)
-            np.add.at(out, aa, contrib)
+        has = st.obs_point >= 0
+        if st.n_cam**2 * 3 * st.n_pts <= self.dense_product_limit and N1 * 3 * st.n_pts <= 3e7:
+            # one dense product Qcc @ Ytilde, then gather every observation's block
+            QY = Qe @ st.tilde(self.Y)
+            out = -QY[st._tilde_rows, st._tilde_cols]
+            out[~has] = 0.0
+        else:
+            acc = np.zeros(m * k * 3)
+            a, b = st.opair1, st.opair2
+            base = np.arange(k * 3)
+            for s in range(0, a.size, self.chunk):
+                aa, bb = a[s : s + self.chunk], b[s : s + self.chunk]
+                ca, cb = st.obs_cols[aa], st.obs_cols[bb]
+                Qab = Qe[ca[:, :, None], cb[:, None, :]]  # (n, k, k)
+                Yb = self.Y[:, bb, :].transpose(1, 0, 2)  # (n, k, 3)
+                contrib = -np.matmul(Qab, Yb)
+                idx = (aa[:, None] * (k * 3) + base).ravel()
+                acc += np.bincount(idx, weights=contrib.ravel(), minlength=m * k * 3)
+            out = acc.reshape(m, k, 3)
         self._cross = out
         return out
 
