@@ -38,6 +38,17 @@ def test_dependent_noise_free(seed):
     assert r.redundancy == len(X) - 5
 
 
+@pytest.mark.parametrize("n", [6, 7, 9])
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_few_points_noise_free(n, seed):
+    # LMedS cannot choose among the five-point roots with few points; every root is ranked
+    s = stereo_pair(np.random.default_rng(seed), n=n)
+    b, a2, _ = _truth_dependent(s)
+    r = relative_orientation(s["xy1"], s["xy2"], s["c"], bx=BX)
+    np.testing.assert_allclose(r.base, b, rtol=1e-8, atol=1e-8 * BX)
+    np.testing.assert_allclose(r.angles2, a2, atol=1e-8)
+
+
 @pytest.mark.parametrize("seed", [0, 3])
 def test_independent_noise_free_is_a_rotation_of_dependent(seed):
     s = stereo_pair(np.random.default_rng(seed))

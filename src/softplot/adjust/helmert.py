@@ -42,26 +42,29 @@ class _MInverse:
     """``M^-1`` applied to vectors/matrices, for diagonal (fast path) or dense ``M``."""
 
     def __init__(self, B, q):
+        self.q = q
+        self.diag = None
+        self.cho = None
         if scipy.sparse.issparse(B):
             B = scipy.sparse.csr_matrix(B)
-            M = (B @ scipy.sparse.diags(q) @ B.T).tocsr()
-            diag = M.diagonal()
-            off = M - scipy.sparse.diags(diag)
-            if off.count_nonzero() == 0 or abs(off).max() <= 1e-15 * max(abs(diag).max(), 1e-300):
-                self.diag = np.asarray(diag, dtype=float)
-                self.cho = None
+            B.sum_duplicates()
+            self.rows = np.repeat(np.arange(B.shape[0]), np.diff(B.indptr))
+            self.n = B.shape[1]
+            if B.nnz == 0 or np.bincount(B.indices, minlength=self.n).max() <= 1:
+                # every observation in at most one condition: M is diagonal
+                self.diag = np.bincount(
+                    self.rows, weights=B.data**2 * q[B.indices], minlength=B.shape[0]
+                )
             else:
-                self.diag = None
-                self.cho = scipy.linalg.cho_factor(M.toarray())
+                M = (B @ scipy.sparse.diags(q) @ B.T).toarray()
+                self.cho = scipy.linalg.cho_factor(M)
         else:
             B = np.asarray(B, dtype=float)
             M = (B * q[None, :]) @ B.T
-            self.diag = None
             self.cho = scipy.linalg.cho_factor(M)
         if self.diag is not None and np.any(self.diag <= 0):
             raise SoftplotError("Gauss-Helmert: a condition does not depend on any observation")
         self.B = B
-        self.q = q
 
     def __call__(self, y):
         if self.diag is not None:
@@ -72,14 +75,16 @@ class _MInverse:
         """Diagonal of ``B' M^-1 B`` (n,)."""
         B = self.B
         if self.diag is not None:
-            if scipy.sparse.issparse(B):
-                return np.asarray(B.multiply(B).T @ (1.0 / self.diag)).ravel()
-            return (B**2).T @ (1.0 / self.diag)
+            return np.bincount(
+                B.indices, weights=B.data**2 / self.diag[self.rows], minlength=self.n
+            )
         Bd = B.toarray() if scipy.sparse.issparse(B) else B
         return np.einsum("ij,ij->j", Bd, self(Bd))
 
     def BT(self, y):
         """``B' y``."""
+        if self.diag is not None and y.ndim == 1:
+            return np.bincount(self.B.indices, weights=self.B.data * y[self.rows], minlength=self.n)
         return self.B.T @ y
 
 

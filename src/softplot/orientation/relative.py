@@ -51,12 +51,47 @@ FREE = {
 _C = np.diag([1.0, -1.0, -1.0])
 
 
+def _cross(a, b):
+    """Row-wise cross product of (n, 3) arrays (faster than np.cross for small n)."""
+    return np.c_[
+        a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+        a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+    ]
+
+
 def _photo_vectors(xy, c, x0, y0):
     return np.c_[xy[:, 0] - x0, xy[:, 1] - y0, np.full(len(xy), -float(c))]
 
 
-def essential_start(xy1, xy2, c, x0=0.0, y0=0.0, bx: float = 1.0):
-    """Dependent relative orientation from the essential matrix.
+def _eight_point(p1, p2):
+    """Linear 8-point essential matrix of normalised OpenCV coordinates (n >= 8)."""
+    h1 = np.c_[p1, np.ones(len(p1))]
+    h2 = np.c_[p2, np.ones(len(p2))]
+    A = np.einsum("ni,nj->nij", h2, h1).reshape(len(p1), 9)
+    E = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    U, d, Vt = np.linalg.svd(E)
+    m = 0.5 * (d[0] + d[1])
+    return U @ np.diag([m, m, 0.0]) @ Vt
+
+
+def _sampson_each(E, p1, p2):
+    h1 = np.c_[p1, np.ones(len(p1))]
+    h2 = np.c_[p2, np.ones(len(p2))]
+    Ex1 = h1 @ E.T
+    Etx2 = h2 @ E
+    num = np.einsum("ni,ni->n", h2, Ex1) ** 2
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
+    return num / np.maximum(den, 1e-300)
+
+
+def essential_candidates(xy1, xy2, c, x0=0.0, y0=0.0, bx: float = 1.0, max_candidates: int = 4):
+    """Dependent relative orientations from the essential matrix, best first.
+
+    Candidates: every solution of OpenCV's ``findEssentialMat`` (five-point, LMedS) and, with
+    8 or more points, the linear eight-point solution of all points; each is turned into a
+    pose by ``recoverPose`` (cheirality) and ranked by the number of points in front, then by
+    the Sampson error over all points.
 
     Parameters
     ----------
@@ -66,40 +101,75 @@ def essential_start(xy1, xy2, c, x0=0.0, y0=0.0, bx: float = 1.0):
         Interior orientation, mm (both photos).
     bx : float
         Base component to scale to.
+    max_candidates : int
 
     Returns
     -------
-    b : ndarray, shape (3,)
-        Base in the left photo frame, ``b[0] = bx``.
-    angles2 : ndarray, shape (3,)
-        ``omega2, phi2, kappa2`` of the right photo relative to the left one, radians.
+    list of (b (3,), angles2 (3,))
+        Base in the left photo frame with ``b[0] = bx`` and ``omega2, phi2, kappa2`` (radians)
+        of the right photo relative to the left one.
     """
     p1 = np.c_[(xy1[:, 0] - x0) / c, -(xy1[:, 1] - y0) / c].astype(np.float64)
     p2 = np.c_[(xy2[:, 0] - x0) / c, -(xy2[:, 1] - y0) / c].astype(np.float64)
     K = np.eye(3)
-    try:
-        E, _ = cv2.findEssentialMat(p1, p2, K, method=cv2.LMEDS, prob=0.999)
-    except cv2.error as exc:
-        raise SoftplotError(f"relative orientation: essential matrix failed ({exc.err})") from None
-    if E is None or E.shape[0] < 3:
-        raise SoftplotError("relative orientation: no essential matrix (degenerate points?)")
-    best = None
-    for i in range(E.shape[0] // 3):
-        Ei = E[3 * i : 3 * i + 3]
-        ngood, R, t, _ = cv2.recoverPose(Ei, p1, p2, K)
-        resid = np.abs(
-            np.einsum("ni,ij,nj->n", np.c_[p2, np.ones(len(p2))], Ei, np.c_[p1, np.ones(len(p1))])
+    n = len(p1)
+    Es = []
+    if n >= 8:
+        Es.append(_eight_point(p1, p2))
+    # every root of the five-point problem (Nister, OpenCV) on 5-point subsets: a spread
+    # deterministic first subset, then random ones
+    rng = np.random.default_rng(0)
+    subsets = [np.arange(5)] if n == 5 else [rng.choice(n, 5, replace=False) for _ in range(24)]
+    for idx in subsets:
+        try:
+            E, _ = cv2.findEssentialMat(
+                p1[idx], p2[idx], K, method=cv2.RANSAC, threshold=1.0, maxIters=1
+            )
+        except cv2.error:
+            continue
+        if E is not None:
+            Es += [E[3 * i : 3 * i + 3] for i in range(E.shape[0] // 3)]
+    # rank by the Sampson error over all points (its median when there are enough points,
+    # robust to blunders); the pose (cheirality) only for the best ones
+    robust = n >= 12
+
+    def score(e):
+        d = _sampson_each(e, p1, p2)
+        return float(np.median(d)) if robust else float(np.sum(d))
+
+    Es.sort(key=score)
+    Es = Es[: 4 * max_candidates]
+    scored = []
+    for Ei in Es:
+        try:
+            ngood, R, t, _ = cv2.recoverPose(Ei, p1, p2, K)
+        except cv2.error:
+            continue
+        tx = np.array([[0, -t[2, 0], t[1, 0]], [t[2, 0], 0, -t[0, 0]], [-t[1, 0], t[0, 0], 0]])
+        M2 = _C @ R @ _C
+        b = -_C @ R.T @ t.ravel()
+        if abs(b[0]) < 1e-6 * np.linalg.norm(b):
+            continue
+        b = b * (bx / b[0])
+        ang = np.array(angles_from_matrix(M2))
+        if any(
+            np.allclose(b, o[2], atol=1e-6 * abs(bx)) and np.allclose(ang, o[3], atol=1e-6)
+            for o in scored
+        ):
+            continue
+        scored.append((-int(ngood), score(tx @ R), b, ang))
+    if not scored:
+        raise SoftplotError(
+            "relative orientation: no essential matrix (degenerate points, or the base has no "
+            "x component)"
         )
-        score = (ngood, -np.median(resid))
-        if best is None or score > best[0]:
-            best = (score, R, t)
-    _, R, t = best
-    M2 = _C @ R @ _C
-    b = -_C @ R.T @ t.ravel()
-    if abs(b[0]) < 1e-6 * np.linalg.norm(b):
-        raise SoftplotError("relative orientation: the base has no x component (bx ~ 0)")
-    b = b * (bx / b[0])
-    return b, np.array(angles_from_matrix(M2))
+    scored.sort(key=lambda o: (o[0], o[1]))
+    return [(o[2], o[3]) for o in scored[:max_candidates]]
+
+
+def essential_start(xy1, xy2, c, x0=0.0, y0=0.0, bx: float = 1.0):
+    """The best candidate of :func:`essential_candidates`: ``(b (3,), angles2 (3,))``."""
+    return essential_candidates(xy1, xy2, c, x0, y0, bx)[0]
 
 
 def y_parallax(xy1, xy2, b, angles1, angles2, c, x0=0.0, y0=0.0):
@@ -286,26 +356,29 @@ def relative_orientation(
             free,
         )
     names = tuple(names) if names is not None else tuple(str(i) for i in range(n))
+    starts = []
     if start is None:
-        b, ang2 = essential_start(xy1, xy2, c, x0, y0, bx)
-        x_start = np.zeros(9)
-        if mode == "dependent":
-            x_start[0:3] = b
-            x_start[6:9] = ang2
-        else:
-            a1, a2 = _dependent_to_independent(b, ang2)
-            x_start[0] = bx
-            x_start[4:6] = a1
-            x_start[6:9] = a2
+        for b, ang2 in essential_candidates(xy1, xy2, c, x0, y0, bx, max_candidates=3):
+            x_start = np.zeros(9)
+            if mode == "dependent":
+                x_start[0:3] = b
+                x_start[6:9] = ang2
+            else:
+                a1, a2 = _dependent_to_independent(b, ang2)
+                x_start[0] = bx
+                x_start[4:6] = a1
+                x_start[6:9] = a2
+            starts.append(x_start)
     else:
         x_start = np.asarray(start, dtype=float).ravel().copy()
         if x_start.size != 9:
             raise SoftplotError("relative orientation: start must have the 9 PARAMS")
         x_start[0] = bx
+        starts.append(x_start)
     fixed = np.array([p not in free for p in PARAMS])
     obs = np.c_[xy1, xy2].ravel()
-    rows = np.repeat(np.arange(n), 4)
     cols = np.arange(4 * n)
+    indptr = np.arange(0, 4 * n + 1, 4)
 
     def fun(x, lh):
         L = lh.reshape(n, 4)
@@ -318,43 +391,53 @@ def relative_orientation(
         dM2 = rotation_derivatives(*x[6:9])
         r1 = p1 @ M1
         r2 = p2 @ M2
-        cr = np.cross(r1, r2)
+        cr = _cross(r1, r2)
         F = cr @ b
         A = np.zeros((n, 9))
         A[:, 0:3] = cr
         for i in range(3):
-            A[:, 3 + i] = np.cross(p1 @ dM1[i], r2) @ b
-            A[:, 6 + i] = np.cross(r1, p2 @ dM2[i]) @ b
-        g1 = np.cross(r2, b) @ M1.T  # dF/dp1 = M1 (r2 x b)
-        g2 = np.cross(b, r1) @ M2.T  # dF/dp2 = M2 (b x r1)
+            A[:, 3 + i] = _cross(p1 @ dM1[i], r2) @ b
+            A[:, 6 + i] = _cross(r1, p2 @ dM2[i]) @ b
+        g1 = _cross(r2, np.broadcast_to(b, r2.shape)) @ M1.T  # dF/dp1 = M1 (r2 x b)
+        g2 = _cross(np.broadcast_to(b, r1.shape), r1) @ M2.T  # dF/dp2 = M2 (b x r1)
         vals = np.c_[g1[:, :2], g2[:, :2]].ravel()
-        B = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, 4 * n))
+        B = scipy.sparse.csr_matrix((vals, cols, indptr), shape=(n, 4 * n))
         return F, A, B
 
     sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4)).ravel()
-    adj = gauss_helmert(
-        fun,
-        x_start,
-        obs,
-        sig,
-        names=PARAMS,
-        sigma0_prior=float(np.median(sig)),
-        fixed=fixed,
-        alpha0=alpha0,
-        what=f"relative orientation ({mode})",
-    )
+    s_prior = float(np.median(sig))
+    best = None
+    first_error = None
+    for x_start in starts:
+        # candidates come best first (points in front, Sampson error - the first-order
+        # approximation of v'Pv); the three best are adjusted and the converged one with every
+        # point in front of both photos and the smallest v'Pv is taken (the five-point
+        # problem has several roots, close ones with few points)
+        try:
+            adj = gauss_helmert(
+                fun,
+                x_start,
+                obs,
+                sig,
+                names=PARAMS,
+                sigma0_prior=s_prior,
+                fixed=fixed,
+                alpha0=alpha0,
+                what=f"relative orientation ({mode})",
+            )
+            x = adj.x
+            pts = intersect_pair(
+                xy1, xy2, np.zeros(3), x[3:6], x[0:3], x[6:9], c, sigma=s_prior, point_names=names
+            )
+        except SoftplotError as exc:
+            first_error = first_error or exc
+            continue
+        if best is None or adj.vtpv < best[0].vtpv:
+            best = (adj, pts)
+    if best is None:
+        raise first_error
+    adj, pts = best
     x = adj.x
-    pts = intersect_pair(
-        xy1,
-        xy2,
-        np.zeros(3),
-        x[3:6],
-        x[0:3],
-        x[6:9],
-        c,
-        sigma=float(np.median(sig)),
-        point_names=names,
-    )
     py = y_parallax(xy1, xy2, x[0:3], x[3:6], x[6:9], c, x0, y0)
     flagged = adj.flagged.reshape(n, 4).any(axis=1)
     return RelativeOrientation(
