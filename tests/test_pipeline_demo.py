@@ -1,0 +1,72 @@
+"""The issue-8 demo chain on a reduced size: accuracy figures against the synthetic truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from softplot.errors import SoftplotError
+from softplot.pipeline.demo import MARKER, DemoConfig, prepare_out_dir, run_demo
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    cfg = DemoConfig(dpi=600, interval=20.0, vertices=24, tie_grid=4, n_check=6)
+    return out, run_demo(out, cfg, progress=False, write_scans=False)
+
+
+def test_demo_accuracy(demo):
+    _, r = demo
+    # detection: every cross of both scans, far below a tenth of a pixel
+    assert r.detection_measured == [121, 121]
+    assert r.detection_rms_px < 0.05
+    # film correction at check points over the whole format (mesh + interior orientation)
+    assert r.correction_rms_um < 1.5
+    assert r.correction_rms_reseau_um < 1.5
+    # relative orientation: a posteriori sigma0 in the photo is the film-correction level
+    assert 0 < r.relative_sigma0_um < 1.0
+    assert 0 < r.absolute_sigma0 < 0.05
+    # check points (photo scale ~1:7400: 1 um in the photo ~ 7 mm on the ground)
+    assert len(r.check_rms_m) == 3
+    assert max(r.check_rms_m) < 0.05
+    # contours: two at 20 m, every vertex within travel, true terrain under them at H
+    assert r.contours == 2
+    assert r.vertices == 2 * 24
+    assert r.contour_height_rms_m < 0.03
+    assert r.contour_height_max_m < 0.1
+    assert r.contour_plan_rms_m < 0.05
+
+
+def test_demo_outputs(demo):
+    out, r = demo
+    for key in ("dxf", "geojson", "report", "result"):
+        assert (out / r.outputs[key].split("/")[-1]).is_file(), key
+    gj = json.loads((out / "contours.geojson").read_text())
+    assert len(gj["features"]) == 2
+    z = {f["geometry"]["coordinates"][0][2] for f in gj["features"]}
+    assert z == {220.0, 240.0}
+    html = (out / "report.html").read_text()
+    assert "data:image/png;base64," in html and "check points" in html.lower()
+    assert json.loads((out / "demo.json").read_text())["vertices"] == r.vertices
+    import ezdxf
+
+    doc = ezdxf.readfile(out / "contours.dxf")
+    assert len(list(doc.modelspace())) >= 2
+    assert np.isfinite(r.seconds)
+
+
+def test_prepare_out_dir_never_touches_user_files(tmp_path):
+    (tmp_path / "mine.txt").write_text("user data")
+    d = prepare_out_dir(tmp_path)
+    assert d == tmp_path / "softplot-demo" and (d / MARKER).is_file()
+    assert (tmp_path / "mine.txt").read_text() == "user data"
+    assert prepare_out_dir(tmp_path) == d  # a demo folder is reused
+    (d / "x").write_text("1")
+    assert prepare_out_dir(d) == d
+    f = tmp_path / "file"
+    f.write_text("")
+    with pytest.raises(SoftplotError):
+        prepare_out_dir(f)
