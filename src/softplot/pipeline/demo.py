@@ -11,7 +11,8 @@ pair over a synthetic terrain (a Gaussian hill whose contours are exact circles,
    deformed (shrinkage + smooth field) and scanned (rotation, offset) by the renderer, which
    keeps the exact film mm <-> pixel mapping (:class:`softplot.synthetic.TruthMapping`);
 2. **detect** the reseau crosses of both scans (:func:`softplot.marks.detect`);
-3. **film correction** (mesh) and interior orientation (:class:`softplot.correction.FilmCorrection`);
+3. **film correction** (mesh) and interior orientation
+   (:class:`softplot.correction.FilmCorrection`);
 4. **relative orientation** (coplanarity) on tie, control and check points and **absolute
    orientation** (7-parameter similarity) on the control points. The image coordinates of these
    points are their *exact truth pixel positions*: they stand in for the operator's
