@@ -207,7 +207,10 @@ class _Plane:
         # global locator: plane -> fractional grid coordinates (col, row), affine least squares
         r, c = np.mgrid[0:rows, 0:cols]
         grid = np.column_stack([c.ravel(), r.ravel()]).astype(float)
-        self.locator = tuple(float(v) for v in fit_transform("affine", flat, grid).params)
+        A = np.column_stack([cond.apply(flat), np.ones(len(flat))])
+        sol = np.linalg.lstsq(A, grid, rcond=None)[0]  # conditioned plane -> (col, row)
+        M = sol.T @ S  # raw plane -> (col, row)
+        self.locator = tuple(float(v) for v in M.ravel())
         nc = cond.apply(flat).reshape(rows, cols, 2)
         P = np.stack([nc[:-1, :-1], nc[:-1, 1:], nc[1:, 1:], nc[1:, :-1]], axis=2)
         P = P.reshape(-1, 4, 2)  # conditioned corners TL, TR, BR, BL of every quad
