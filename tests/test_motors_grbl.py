@@ -250,3 +250,11 @@ def test_cli_simulate_serves_a_pty():
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_one_driver_per_controller(sim):
+    with GrblMotors(sim.path) as m:
+        with pytest.raises(MotorDisconnected, match="cannot open serial port"):
+            GrblMotors(sim.path, timeout=0.5)
+        m.move_to(0.1, 0.0)  # the first driver is undisturbed
+        assert m.position() == pytest.approx((0.1, 0.0))

@@ -263,7 +263,11 @@ class GrblMotors(Motors):
     def _connect(self) -> None:
         try:
             self.ser = serial.Serial(
-                self.port, self.baudrate, timeout=0.05, write_timeout=self.timeout
+                self.port,
+                self.baudrate,
+                timeout=0.05,
+                write_timeout=self.timeout,
+                exclusive=True,  # one driver per controller (flock)
             )
         except (serial.SerialException, OSError) as exc:
             raise MotorDisconnected(f"cannot open serial port {self.port}: {exc}") from exc

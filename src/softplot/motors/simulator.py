@@ -791,7 +791,13 @@ class GrblSimulator:
                 self.phys[0] -= fl.value / self.settings[100]
 
     def _disconnect(self):
-        """The line goes away; a timer brings it back on a new pty."""
+        """The line goes away; a timer brings it back on a new pty.
+
+        The ``link`` disappears with it (as a USB device node does): the freed pty number may
+        be reused by another program at once, and nobody must reach that one through it.
+        """
+        if self.link and os.path.islink(self.link):
+            os.unlink(self.link)
         self._close_pty()
         self._out.clear()
         self.rx.clear()
