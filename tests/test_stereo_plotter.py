@@ -172,3 +172,44 @@ def test_bad_plotter_use():
         pl.begin("C", kind="contour")
     with pytest.raises(SoftplotError, match="feature code"):
         pl.begin("bad code with spaces")
+
+
+def test_with_interior_orientation_of_a_certificate(tmp_path):
+    """Film corrections from softplot.orientation.interior (Wild RC10 certificate, radial
+    distortion table): the plotter works on film coordinates and still lands on the truth;
+    the corrections survive a session save/resume (pickled bound methods)."""
+    from softplot.camera import load_camera
+    from softplot.orientation.interior import InteriorOrientation
+    from softplot.stereo import Session
+
+    io = InteriorOrientation("wild-rc10")
+    t = aerial_pair(seed=19, c=load_camera("wild-rc10").c, deform=False)
+    t.x0[:] = 0.0
+    t.y0[:] = 0.0
+    photos = [
+        OrientedPhoto(t.X0[k], t.angles[k], t.c[k], 0.0, 0.0, io.film_to_photo, io.photo_to_film)
+        for k in range(2)
+    ]
+    model = StereoModel(*photos)
+    s = Session.create(tmp_path / "rc10", model, mode="contour", height=300.0)
+    s.close()
+    model = Session.resume(tmp_path / "rc10").model
+    mot = VirtualMotors(FINE, FINE)
+    pl = Plotter(model, mot, mode="contour", height=300.0)
+    C = t.contour_truth(300.0, 24)
+    rf = io.photo_to_film(t.photo(1, C))
+    lf = io.photo_to_film(t.photo(0, C))
+    assert np.max(np.abs(rf - t.photo(1, C))) > 1e-4  # the distortion matters here
+    for (X, Y), left, truth in zip(rf, lf, C, strict=True):
+        cyc = pl.cycle(X, Y)
+        assert np.max(np.abs(np.array(mot.left_film()) - left)) < 1e-6
+        assert abs(cyc.XYZ[2] - 300.0) < 1e-6
+        assert np.hypot(cyc.XYZ[0] - truth[0], cyc.XYZ[1] - truth[1]) < 1e-6
+    pl.set_mode("single")
+    P = t.sample_points(10, seed=6)
+    rf = io.photo_to_film(t.photo(1, P))
+    lf = io.photo_to_film(t.photo(0, P))
+    for (X, Y), (x1f, _), truth in zip(rf, lf, P, strict=True):
+        cyc = pl.cycle(X, Y, px=x1f - X)
+        assert abs(model.y_parallax([[cyc.x1, cyc.y1]], [[cyc.x2, cyc.y2]])[0]) < 1e-9
+        assert np.max(np.abs(np.array(cyc.XYZ) - truth)) < 1e-6
