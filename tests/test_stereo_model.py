@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from conftest import sweep
 from softplot.errors import SoftplotError
@@ -181,3 +183,31 @@ def test_bad_models_raise_one_line_errors():
         side.contour([[0.0, 0.0]], 0.0)
     r = m.contour([[1.0, 2.0]], 0.0)
     assert np.allclose(r.XYZ[0, 2], 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    angles=st.lists(st.floats(-0.35, 0.35), min_size=6, max_size=6),
+    base=st.floats(50.0, 800.0),
+    by=st.floats(-50.0, 50.0),
+    bz=st.floats(-50.0, 50.0),
+    c=st.floats(30.0, 300.0),
+    seed=st.integers(0, 2**16),
+)
+def test_single_point_and_contour_any_geometry(angles, base, by, bz, c, seed):
+    """Random tilted/convergent pairs: y-parallax removed and contour height exact."""
+    L = OrientedPhoto([0.0, 0.0, 1500.0], angles[:3], c, 0.01, -0.02)
+    R = OrientedPhoto([base, by, 1500.0 + bz], angles[3:], c, -0.01, 0.02)
+    m = StereoModel(L, R)
+    rng = np.random.default_rng(seed)
+    P = np.c_[
+        rng.uniform(-200, base + 200, 20), rng.uniform(-300, 300, 20), rng.uniform(0, 300, 20)
+    ]
+    xy1, xy2 = m.project(P)
+    r = m.single_point(xy2, xy1[:, 0])
+    scale = 1 + np.abs(xy1).max()
+    assert np.max(np.abs(r.xy1[:, 1] - xy1[:, 1])) < 1e-9 * scale
+    assert np.max(np.abs(m.y_parallax(*m.project(r.XYZ)))) < 1e-9 * scale
+    rc = m.contour(xy2, P[:, 2])
+    assert np.max(np.abs(rc.XYZ[:, 2] - P[:, 2])) < 1e-6
+    assert np.max(np.abs(rc.XYZ - P)) < 1e-6
