@@ -191,7 +191,7 @@ def _residual_statistics(J, Qxx, p, v, sigma0_prior, alpha0):
     """qvv, redundancy numbers, w, flags for a Gauss-Markov model (J, Qxx over free unknowns)."""
     with np.errstate(divide="ignore"):
         qll = np.where(p > 0, 1.0 / p, np.inf)
-    h = np.einsum("ij,jk,ik->i", J, Qxx, J)
+    h = np.sum((J @ Qxx) * J, axis=1)
     qvv = np.clip(qll - h, 0.0, None)
     ri = np.clip(p * qvv, 0.0, 1.0)
     k = critical_value(alpha0)

@@ -175,7 +175,7 @@ def gauss_helmert(
     N = A.T @ MiA
     _, Qf = _solve_bordered(N, np.zeros(N.shape[0]))
     H = q[:, None] * np.asarray(Mi.BT(MiA))  # Q B' M^-1 A  (n, u)
-    qvv = np.clip(q**2 * Mi.diag_BtMiB() - np.einsum("ij,jk,ik->i", H, Qf, H), 0.0, None)
+    qvv = np.clip(q**2 * Mi.diag_BtMiB() - np.sum((H @ Qf) * H, axis=1), 0.0, None)
     r = int(m - free.sum())
     vtpv = float(np.sum(p * v**2))
     sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")

@@ -24,7 +24,7 @@ import numpy as np
 
 from softplot.adjust import UndeterminedError, critical_value
 from softplot.errors import SoftplotError
-from softplot.geometry.collinearity import camera_coordinates, image_rays, project_jacobian
+from softplot.geometry.collinearity import camera_coordinates, image_rays
 from softplot.geometry.rotation import rotation_matrix
 
 __all__ = ["Intersection", "intersect", "intersect_pair"]
@@ -79,8 +79,82 @@ class Intersection:
         return np.sqrt(np.clip(np.einsum("pii->pi", self.covariance), 0.0, None))
 
 
+def _inv3(N):
+    """Inverses (P, 3, 3) of symmetric 3x3 matrices by cofactors, and their determinants."""
+    a, b, c = N[:, 0, 0], N[:, 0, 1], N[:, 0, 2]
+    d, e, f = N[:, 1, 1], N[:, 1, 2], N[:, 2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    det = a * A + b * B + c * C
+    inv = np.empty_like(N)
+    inv[:, 0, 0] = A
+    inv[:, 0, 1] = inv[:, 1, 0] = B
+    inv[:, 0, 2] = inv[:, 2, 0] = C
+    inv[:, 1, 1] = a * f - c * c
+    inv[:, 1, 2] = inv[:, 2, 1] = b * c - a * e
+    inv[:, 2, 2] = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv /= det[:, None, None]
+    return inv, det
+
+
+def _scaled_det(N):
+    """Determinant of the unit-diagonal scaled matrices: ~0 when (near-)singular."""
+    dg = np.einsum("pii->pi", N)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = 1.0 / np.sqrt(dg)
+        Ns = N * s[:, :, None] * s[:, None, :]
+    _, det = _inv3(np.nan_to_num(Ns))
+    return np.where(np.all(dg > 0, axis=1), det, 0.0)
+
+
 def _batched_solve(N, b):
-    return np.linalg.solve(N, b[..., None])[..., 0]
+    inv, _ = _inv3(N)
+    return np.einsum("pij,pj->pi", inv, b)
+
+
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _normal_matrices(point, Jx, Jw, P):
+    """Per-point ``sum J' P J`` (P, 3, 3) from the six unique products, by bincount."""
+    N = np.empty((P, 3, 3))
+    for i, j in _SYM:
+        v = Jx[:, 0, i] * Jw[:, 0, j] + Jx[:, 1, i] * Jw[:, 1, j]
+        N[:, i, j] = N[:, j, i] = np.bincount(point, weights=v, minlength=P)
+    return N
+
+
+def _accumulate(point, values, P):
+    """Sum ``values`` (K, ...) per point -> (P, ...) with bincount (np.add.at is slow)."""
+    flat = values.reshape(len(values), -1)
+    out = np.empty((P, flat.shape[1]))
+    for j in range(flat.shape[1]):
+        out[:, j] = np.bincount(point, weights=flat[:, j], minlength=P)
+    return out.reshape((P,) + values.shape[1:])
+
+
+def _project_dX(XYZ, C, R, c, x0, y0):
+    """Photo coordinates (K, 2) and their derivative w.r.t. the object point (K, 2, 3).
+
+    ``R`` is the tuple of the three rows of every observation's rotation, each (K, 3).
+    """
+    d = XYZ - C
+    u0 = np.einsum("ki,ki->k", R[0], d)
+    u1 = np.einsum("ki,ki->k", R[1], d)
+    w = np.einsum("ki,ki->k", R[2], d)
+    qx = u0 / w
+    qy = u1 / w
+    f = np.empty((len(w), 2))
+    f[:, 0] = x0 - c * qx
+    f[:, 1] = y0 - c * qy
+    # d xy / d u = [[-c/w, 0, c qx/w], [0, -c/w, c qy/w]];  d u / d X = M
+    a = (-c / w)[:, None]
+    J = np.empty((len(w), 2, 3))
+    J[:, 0, :] = a * (R[0] - qx[:, None] * R[2])
+    J[:, 1, :] = a * (R[1] - qy[:, None] * R[2])
+    return f, J
 
 
 def intersect(
@@ -195,41 +269,34 @@ def intersect(
     # linear start: nearest point to the rays
     d = image_rays(xy, Mk, cF[photo], x0F[photo], y0F[photo])
     A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    NA = np.zeros((P, 3, 3))
-    bA = np.zeros((P, 3))
-    np.add.at(NA, point, A)
-    np.add.at(bA, point, np.einsum("kij,kj->ki", A, Ck))
-    ev = np.linalg.eigvalsh(NA)
-    bad = np.nonzero(ev[:, 0] <= 1e-10 * ev[:, -1])[0]
+    NA = _accumulate(point, A, P)
+    bA = _accumulate(point, np.einsum("kij,kj->ki", A, Ck), P)
+    bad = np.nonzero(_scaled_det(NA) <= 1e-10)[0]
     if bad.size:
         undetermined(list(bad))
     XYZ = _batched_solve(NA, bA)
+    ck, x0k, y0k = cF[photo], x0F[photo], y0F[photo]
+    Rk = tuple(np.ascontiguousarray(Ms[photo, i, :]) for i in range(3))
+
+    def normals(XYZ):
+        f, Jx = _project_dX(XYZ[point], Ck, Rk, ck, x0k, y0k)
+        Jw = Jx * p[:, :, None]
+        N = _normal_matrices(point, Jx, Jw, P)
+        return f, Jx, Jw, N
+
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007
-        f, J = project_jacobian(XYZ[point], Ck, angles[photo], cF[photo], x0F[photo], y0F[photo])
-        Jx = J[:, :, 6:9]  # (K, 2, 3)
-        l = xy - f
-        N = np.zeros((P, 3, 3))
-        b = np.zeros((P, 3))
-        np.add.at(N, point, np.einsum("kai,ka,kaj->kij", Jx, p, Jx))
-        np.add.at(b, point, np.einsum("kai,ka,ka->ki", Jx, p, l))
+        f, Jx, Jw, N = normals(XYZ)
+        b = _accumulate(point, np.einsum("kai,ka->ki", Jw, xy - f), P)
         dX = _batched_solve(N, b)
         XYZ = XYZ + dX
         if np.all(np.abs(dX) <= tol * (1.0 + np.abs(XYZ))):
             break
-    f, J = project_jacobian(XYZ[point], Ck, angles[photo], cF[photo], x0F[photo], y0F[photo])
-    Jx = J[:, :, 6:9]
-    N = np.zeros((P, 3, 3))
-    np.add.at(N, point, np.einsum("kai,ka,kaj->kij", Jx, p, Jx))
-    ev = np.linalg.eigvalsh(
-        N
-        * (1.0 / np.sqrt(np.einsum("pii->pi", N)))[:, :, None]
-        * (1.0 / np.sqrt(np.einsum("pii->pi", N)))[:, None, :]
-    )
-    bad = np.nonzero(ev[:, 0] <= 1e-12 * ev[:, -1])[0]
+    f, Jx, Jw, N = normals(XYZ)
+    bad = np.nonzero(_scaled_det(N) <= 1e-12)[0]
     if bad.size:
         undetermined(list(bad))
-    Q = np.linalg.inv(N)
+    Q, _ = _inv3(N)
     u = camera_coordinates(XYZ[point], Ck, Mk)
     if np.any(u[:, 2] >= 0):
         behind = sorted(set(point[u[:, 2] >= 0].tolist()))
@@ -252,7 +319,7 @@ def intersect(
         scale = np.full(P, s_prior)
     cov = Q * (scale**2)[:, None, None]
     # residual cofactors: qvv = 1/p - J Q J'
-    h = np.einsum("kai,kij,kaj->ka", Jx, Q[point], Jx)
+    h = np.einsum("kai,kai->ka", np.matmul(Jx, Q[point]), Jx)
     qvv = np.clip(1.0 / p - h, 0.0, None)
     ri = p * qvv
     with np.errstate(invalid="ignore", divide="ignore"):
