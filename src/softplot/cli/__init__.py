@@ -21,8 +21,6 @@ COMMANDS = [
     "cameras",
     "synth",
     "demo",
-    "synth",
-    "demo",
     "info",
     "restitute",
     "motors",
@@ -33,6 +31,8 @@ COMMANDS = [
     "absor",
     "pc",
     "correct",
+    "process",
+    "batch",
 ]
 
 

@@ -21,7 +21,11 @@ from pathlib import Path
 
 from softplot.errors import SoftplotError
 
-SUMMARY_FIELDS = ["scan", "status", "marks", "measured", "rms_px", "seconds", "error"]
+#: columns of ``summary.csv``: scan path, status (done|failed|skipped), marks in the
+#: certificate, marks measured, detection RMS (px), correction method applied, its
+#: leave-one-out RMS (um on the film), QC (ok or the warnings), seconds, error message
+SUMMARY_FIELDS = ["scan", "status", "marks", "measured", "rms_px", "method", "loo_rms_um", "qc",
+                  "seconds", "error"]
 
 
 @dataclass
@@ -42,14 +46,17 @@ class BatchReport:
 
     def table(self) -> str:
         """The summary table printed at the end of a batch."""
-        lines = [f"{'scan':<40} {'status':<8} {'measured':>9} {'rms px':>8} {'s':>6}  error"]
+        lines = [f"{'scan':<32} {'status':<8} {'measured':>9} {'rms px':>8} {'method':<16} "
+                 f"{'LOO um':>7} {'s':>6}  qc / error"]
         for r in self.rows:
             meas = f"{r.get('measured', '')}/{r.get('marks', '')}" if r.get("marks") else ""
             rms = f"{r['rms_px']:.4f}" if isinstance(r.get("rms_px"), (int, float)) else ""
+            loo = f"{r['loo_rms_um']:.2f}" if isinstance(r.get("loo_rms_um"), (int, float)) else ""
             sec = f"{r['seconds']:.2f}" if isinstance(r.get("seconds"), (int, float)) else ""
             lines.append(
-                f"{Path(r['scan']).name[:40]:<40} {r['status']:<8} {meas:>9} {rms:>8} {sec:>6}"
-                f"  {r.get('error') or ''}"
+                f"{Path(r['scan']).name[:32]:<32} {r['status']:<8} {meas:>9} {rms:>8} "
+                f"{(r.get('method') or '')[:16]:<16} {loo:>7} {sec:>6}  "
+                f"{r.get('error') or r.get('qc') or ''}"
             )
         lines.append(
             f"{self.done} done, {self.failed} failed, {self.skipped} skipped (already done), "
@@ -114,9 +121,30 @@ def _row_from_result(scan: Path, res: dict) -> dict:
         "marks": res.get("marks_total"),
         "measured": res.get("marks_measured"),
         "rms_px": res.get("rms_px"),
+        "method": res.get("method"),
+        "loo_rms_um": res.get("loo_rms_um"),
+        "qc": _qc_text(res.get("qc")),
         "seconds": res.get("seconds"),
         "error": res.get("error"),
     }
+
+
+def _qc_text(qc) -> str | None:
+    if not isinstance(qc, dict):
+        return None
+    return "ok" if qc.get("ok") else "; ".join(qc.get("warnings", []))
+
+
+def check_stems(scans: list[Path]) -> None:
+    """Raise :class:`SoftplotError` if two scans share a file stem (their results would)."""
+    seen: dict[str, Path] = {}
+    for s in scans:
+        if s.stem in seen:
+            raise SoftplotError(
+                f"{s} and {seen[s.stem]} have the same name stem {s.stem!r}: their results "
+                "would collide in one output folder"
+            )
+        seen[s.stem] = s
 
 
 def run_one(task: Callable[..., dict], scan: str, out_dir: str, kwargs: dict) -> dict:

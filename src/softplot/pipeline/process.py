@@ -1,0 +1,367 @@
+"""``softplot process``: detection, film correction and quality control of real scans.
+
+:func:`process_scan` is one scan's whole job (and the task of :mod:`softplot.pipeline.batch`):
+
+1. load the scan (:func:`softplot.io.load_scan`) and detect its reseau crosses / fiducials
+   (:func:`softplot.marks.detect`);
+2. cross-validate every film-correction method over the measured marks
+   (:func:`softplot.correction.compare`: leave-one-out and checkerboard check residuals,
+   micrometres on the film) and take the recommended one (or the one asked for);
+3. quality control: flags for missing / rejected marks, detection RMS and correction check
+   RMS over thresholds (:data:`QC_LIMITS`);
+4. optionally write the film-flattened image (:func:`softplot.correction.write_resampled`);
+5. write ``<out>/<stem>.json`` atomically, ending with ``"complete": true``.
+
+Per-scan JSON keys: ``softplot`` ("process"), ``version``, ``scan`` (path), ``camera``,
+``status`` ("done"), ``marks_total``, ``marks_measured``, ``marks_missing``,
+``marks_rejected``, ``rms_px`` (detection residual RMS against the projective film -> pixel
+model, px), ``method`` (the correction applied), ``recommended``, ``loo_rms_um`` and
+``loo_max_um`` of that method, ``crossval`` (every method's scores, see
+:meth:`softplot.geometry.crossval.CrossValidation.to_dict`), ``qc`` (``ok`` and a list of
+``warnings``), ``worst`` (the marks with the largest residuals: name, x, y px, residual
+px), ``detection`` (the issue-3 detection JSON), ``flattened`` (paths or null),
+``seconds``, ``complete``.
+
+:func:`write_report` builds the one self-contained HTML report over the results of a run:
+a summary table, then per scan the residual vectors of the marks, chips of the worst marks
+cut from the scan, and the per-method correction comparison (table and chart).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softplot import __version__
+from softplot.errors import SoftplotError
+
+__all__ = ["process_scan", "process_scans", "write_report", "QC_LIMITS", "load_results"]
+
+#: quality-control limits: detection RMS (px), LOO RMS of the applied correction (um),
+#: share of marks that must be measured
+QC_LIMITS = {"rms_px": 0.25, "loo_rms_um": 5.0, "measured_share": 0.9}
+N_WORST = 6
+_SIGNATURE = b'{\n "softplot": "process"'
+
+
+def _result_path(out_dir: Path, scan: Path) -> Path:
+    return Path(out_dir) / f"{Path(scan).stem}.json"
+
+
+def _check_output(scan: Path, out_dir: Path) -> Path:
+    """The result path of ``scan``; refuse to clobber an input or a foreign file."""
+    rp = _result_path(out_dir, scan)
+    if rp.resolve() == Path(scan).resolve():
+        raise SoftplotError(f"{scan}: the result {rp.name} would overwrite the scan itself")
+    if rp.exists():
+        raw = rp.read_bytes()
+        try:
+            prev = json.loads(raw)
+            ours = isinstance(prev, dict) and prev.get("softplot") == "process"
+        except ValueError:  # a torn file: ours if it starts as our results do
+            ours = not raw.strip() or raw.startswith(_SIGNATURE)
+        if not ours:
+            raise SoftplotError(f"{rp}: exists and is not a softplot result; refusing to "
+                                "overwrite it (choose another --out)")
+    return rp
+
+
+def process_scan(
+    scan: str | Path,
+    out_dir: str | Path,
+    *,
+    camera,
+    method: str | None = None,
+    flatten: bool = False,
+    pixel_size_um: float | None = None,
+    dpi: float | None = None,
+    polarity: str = "auto",
+    crossval_methods=None,
+) -> dict:
+    """Detect, correct and check one scan; write ``<out_dir>/<stem>.json`` atomically.
+
+    Parameters
+    ----------
+    scan : str or Path
+        The scan file.
+    out_dir : str or Path
+        Output folder (created).
+    camera : Camera or str
+        Certificate (built-in name, TOML path or Camera).
+    method : str, optional
+        Correction method to apply; default the cross-validation's recommendation.
+    flatten : bool
+        Also write the film-flattened TIFF ``<stem>.film.tif`` (+ JSON sidecar).
+    pixel_size_um : float, optional
+        Pixel size of the flattened image (default: the scan's).
+    dpi : float, optional
+        Scan resolution when the file does not say.
+    polarity : {"auto", "positive", "negative"}
+    crossval_methods : sequence of str, optional
+        Methods to cross-validate (default: all of :data:`softplot.correction.METHODS`).
+
+    Returns
+    -------
+    dict
+        The result (what was written, without the bulky ``detection`` and ``crossval``).
+
+    Raises
+    ------
+    SoftplotError
+        Unreadable scan, failed detection, bad camera: the batch records it and goes on.
+    """
+    from softplot.camera import load_camera
+    from softplot.correction import (
+        METHODS,
+        FilmCorrection,
+        compare,
+        default_pixel_size,
+        marks_from_detection,
+        resample,
+        write_resampled,
+    )
+    from softplot.io import load_scan
+    from softplot.marks import detect
+    from softplot.pipeline.batch import write_json_atomic
+
+    t0 = time.perf_counter()
+    scan = Path(scan)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rp = _check_output(scan, out_dir)
+    cam = load_camera(camera)
+    if method is not None and method not in METHODS:
+        raise SoftplotError(f"unknown correction method {method!r} (one of {', '.join(METHODS)})")
+    sc = load_scan(scan)
+    det = detect(sc, cam, dpi=dpi, polarity=polarity)
+    dj = det.to_json()
+    dj["image"] = str(scan)
+    marks = dj["marks"]
+    counts = dj.get("counts", {})
+    n_total = len(marks)
+    n_meas = int(counts.get("measured", sum(m.get("status") == "measured" for m in marks)))
+    ref = marks_from_detection(cam, dj)
+    cv = compare(cam, ref, crossval_methods)
+    applied = method or cv.recommended or "mesh"
+    try:
+        score = cv.score(applied)
+        loo_rms, loo_max = score.loo_rms_um, score.loo_max_um
+    except KeyError:
+        loo_rms = loo_max = float("nan")
+
+    # worst marks by residual against the detection's projective model
+    meas = [m for m in marks if m.get("status") == "measured" and m.get("residual_x") is not None]
+    res_len = np.array([np.hypot(m["residual_x"], m["residual_y"]) for m in meas])
+    order = np.argsort(-res_len)[:N_WORST] if len(meas) else []
+    worst = [{"name": meas[i]["name"], "x": meas[i]["x"], "y": meas[i]["y"],
+              "residual_px": float(res_len[i])} for i in order]
+
+    warnings = list(dj.get("warnings") or [])
+    rms_px = dj.get("rms_px")
+    if n_total and n_meas / n_total < QC_LIMITS["measured_share"]:
+        warnings.append(f"only {n_meas}/{n_total} marks measured")
+    if isinstance(rms_px, (int, float)) and rms_px > QC_LIMITS["rms_px"]:
+        warnings.append(f"detection RMS {rms_px:.3f} px > {QC_LIMITS['rms_px']} px")
+    if np.isfinite(loo_rms) and loo_rms > QC_LIMITS["loo_rms_um"]:
+        warnings.append(f"{applied} LOO RMS {loo_rms:.2f} um > {QC_LIMITS['loo_rms_um']} um")
+
+    flattened = None
+    if flatten:
+        fc = FilmCorrection(cam, ref, applied, (sc.width, sc.height))
+        ps = (pixel_size_um / 1000.0 if pixel_size_um else default_pixel_size(fc, sc.dpi))
+        img_path = out_dir / f"{scan.stem}.film.tif"
+        for q in (img_path, img_path.with_name(img_path.name + ".json")):
+            if q.exists():
+                q.unlink()  # our own output of an earlier (possibly half-done) run
+        rs = resample(sc.data, fc, ps)
+        p, side = write_resampled(img_path, rs, {"scan": str(scan), "camera": cam.name})
+        flattened = {"image": str(p), "sidecar": str(side), "pixel_size_mm": ps}
+
+    def num(v):
+        return None if v is None or not np.isfinite(v) else float(v)
+
+    result = {
+        "softplot": "process",
+        "version": __version__,
+        "scan": str(scan),
+        "camera": cam.name,
+        "status": "done",
+        "width": sc.width,
+        "height": sc.height,
+        "dpi": sc.dpi,
+        "marks_total": n_total,
+        "marks_measured": n_meas,
+        "marks_missing": int(counts.get("missing", 0)),
+        "marks_rejected": int(counts.get("rejected", 0)),
+        "rms_px": num(rms_px),
+        "method": applied,
+        "recommended": cv.recommended,
+        "loo_rms_um": num(loo_rms),
+        "loo_max_um": num(loo_max),
+        "qc": {"ok": not warnings, "warnings": warnings, "limits": QC_LIMITS},
+        "worst": worst,
+        "flattened": flattened,
+        "crossval": cv.to_dict(),
+        "detection": dj,
+    }
+    result["seconds"] = time.perf_counter() - t0
+    result["complete"] = True
+    write_json_atomic(rp, result)
+    stale = out_dir / f"{scan.stem}.error.json"
+    if stale.exists():
+        stale.unlink()
+    return {k: v for k, v in result.items() if k not in ("detection", "crossval")}
+
+
+def process_scans(scans, out_dir, *, progress: bool = True, **kwargs):
+    """Process ``scans`` one after the other in this process (``softplot process``).
+
+    Every scan is attempted; failures are recorded (``<stem>.error.json`` and a "failed"
+    row) and the rest go on. Writes ``summary.csv``. Returns a
+    :class:`softplot.pipeline.batch.BatchReport`.
+    """
+    from tqdm import tqdm
+
+    from softplot.pipeline.batch import BatchReport, run_one, write_summary
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = BatchReport()
+    t0 = time.perf_counter()
+    for s in tqdm(list(scans), desc="process", unit="scan", disable=not progress):
+        report.rows.append(run_one(process_scan, str(s), str(out_dir), kwargs))
+    report.seconds = time.perf_counter() - t0
+    write_summary(out_dir / "summary.csv", report.rows)
+    return report
+
+
+def load_results(out_dir, rows) -> list[dict]:
+    """The complete per-scan results named by summary ``rows`` (failed ones as rows)."""
+    out = []
+    for r in rows:
+        rp = _result_path(out_dir, Path(r["scan"]))
+        if r["status"] in ("done", "skipped") and rp.exists():
+            try:
+                out.append(json.loads(rp.read_text(encoding="utf-8")))
+                continue
+            except (OSError, ValueError):
+                pass
+        out.append({"scan": r["scan"], "status": r["status"], "error": r.get("error")})
+    return out
+
+
+def _chips(scan_path: str, worst: list[dict], half: int = 12):
+    """Grey chips (list of 2D arrays) around the worst marks, read through a window."""
+    from softplot.io import load_scan
+
+    sc = load_scan(scan_path)
+    chips = []
+    for w in worst:
+        x, y = int(round(w["x"])), int(round(w["y"]))
+        r0, r1 = max(0, y - half), min(sc.height, y + half + 1)
+        c0, c1 = max(0, x - half), min(sc.width, x + half + 1)
+        if r1 > r0 and c1 > c0:
+            chips.append((w, sc.grey((slice(r0, r1), slice(c0, c1))), (x - c0, y - r0)))
+    return chips
+
+
+def write_report(path, results: list[dict], title: str = "softplot process",
+                 max_detailed: int = 50) -> Path:
+    """One self-contained HTML report over the per-scan ``results``.
+
+    Summary table of every scan; for the first ``max_detailed`` done scans: residual
+    vectors of the marks (pixel system), chips of the worst marks, the per-method correction
+    comparison (cross-validation table and chart, micrometres on the film).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from softplot.export.html import Report
+
+    rep = Report(title)
+    done = [r for r in results if r.get("complete")]
+    failed = [r for r in results if not r.get("complete")]
+    rep.paragraph(f"{len(done)} scans processed, {len(failed)} failed.",
+                  "ok" if not failed else "warn")
+    rep.heading("Summary")
+    rows = []
+    for r in results:
+        if r.get("complete"):
+            rows.append([Path(r["scan"]).name, "done", f"{r['marks_measured']}/{r['marks_total']}",
+                         r.get("rms_px"), r.get("method"), r.get("loo_rms_um"),
+                         "ok" if r["qc"]["ok"] else "; ".join(r["qc"]["warnings"])])
+        else:
+            rows.append([Path(r["scan"]).name, r.get("status", "failed"), None, None, None,
+                         None, r.get("error") or ""])
+    rep.table(["scan", "status", "measured", "rms px", "method", "LOO rms um", "QC / error"],
+              rows)
+    for r in done[:max_detailed]:
+        name = Path(r["scan"]).name
+        rep.heading(name)
+        rep.paragraph(
+            f"{r['camera']}, {r['width']} x {r['height']} px, "
+            f"{r['dpi'] or 0:.0f} dpi; {r['marks_measured']}/{r['marks_total']} marks measured, "
+            f"detection RMS {r['rms_px'] or float('nan'):.4f} px; correction {r['method']} "
+            f"(recommended {r['recommended']}), LOO RMS {r['loo_rms_um'] or float('nan'):.2f} um")
+        for w in r["qc"]["warnings"]:
+            rep.paragraph(w, "warn")
+        marks = [m for m in r["detection"]["marks"]
+                 if m.get("status") == "measured" and m.get("residual_x") is not None]
+        fig, axs = plt.subplots(1, 2, figsize=(11, 4.8))
+        if marks:
+            xy = np.array([[m["x"], m["y"]] for m in marks])
+            d = np.array([[m["residual_x"], m["residual_y"]] for m in marks])
+            scale = 0.08 * max(r["width"], r["height"]) / max(np.abs(d).max(), 1e-6)
+            axs[0].quiver(xy[:, 0], xy[:, 1], d[:, 0], d[:, 1], angles="xy", scale_units="xy",
+                          scale=1 / scale, color="C3", width=0.003)
+            axs[0].plot(xy[:, 0], xy[:, 1], "k.", ms=2)
+            miss = [m for m in r["detection"]["marks"] if m.get("status") != "measured"
+                    and m.get("x") is not None]
+            if miss:
+                axs[0].plot([m["x"] for m in miss], [m["y"] for m in miss], "bx",
+                            label="not measured")
+                axs[0].legend(loc="lower right")
+            axs[0].set_xlim(0, r["width"])
+            axs[0].set_ylim(r["height"], 0)
+            axs[0].set_aspect("equal")
+            axs[0].set_title(f"residual vectors (x{scale:.0f}), pixel system")
+        meths = [m for m in r["crossval"]["methods"] if m.get("loo_rms_um") is not None]
+        if meths:
+            names = [m["method"] for m in meths]
+            axs[1].barh(names, [m["loo_rms_um"] for m in meths], color="C0", label="LOO RMS")
+            axs[1].plot([m["loo_max_um"] for m in meths], names, "k|", ms=12, label="LOO max")
+            axs[1].set_xlabel("um on the film")
+            axs[1].legend(loc="lower right")
+            axs[1].set_title("correction methods: leave-one-out check residuals")
+        fig.tight_layout()
+        rep.figure(fig)
+        try:
+            chips = _chips(r["scan"], r["worst"])
+        except SoftplotError:
+            chips = []
+        if chips:
+            fig, axs = plt.subplots(1, len(chips), figsize=(1.9 * len(chips), 2.2),
+                                    squeeze=False)
+            for ax, (w, g, (cx, cy)) in zip(axs[0], chips, strict=True):
+                ax.imshow(g, cmap="gray", interpolation="nearest")
+                ax.plot(cx + (w["x"] - round(w["x"])), cy + (w["y"] - round(w["y"])), "r+")
+                ax.set_title(f"{w['name']}\n{w['residual_px']:.3f} px", fontsize=8)
+                ax.axis("off")
+            rep.figure(fig, "worst marks (largest residuals), red +: measured position")
+        rep.table(["method", "params", "fit rms um", "LOO rms um", "LOO max um",
+                   "checkerboard rms um", "note"],
+                  [[m["method"], m.get("n_params"), m.get("fit_rms_um"), m.get("loo_rms_um"),
+                    m.get("loo_max_um"), m.get("checkerboard_rms_um"), m.get("note", "")]
+                   for m in r["crossval"]["methods"]])
+    if len(done) > max_detailed:
+        rep.paragraph(f"(details of the first {max_detailed} scans only; every scan has its "
+                      "JSON result)")
+    if failed:
+        rep.heading("Failed scans")
+        rep.table(["scan", "error"], [[r["scan"], r.get("error") or ""] for r in failed])
+    return rep.write(path)
