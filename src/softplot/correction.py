@@ -180,13 +180,19 @@ class FilmCorrection:
             size = (int(detection["width"]), int(detection["height"]))
         return cls(camera, marks, method, size)
 
-    def _image_flags(self, xy: np.ndarray, flags: np.ndarray) -> np.ndarray:
+    @property
+    def bounds(self):
+        """(x0, x1, y0, y1) of the scan in px (pixel edges), or None."""
         if self.image_size is None:
-            return flags
+            return None
         w, h = self.image_size
-        out = ~(
-            (xy[:, 0] >= -0.5) & (xy[:, 0] <= w - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= h - 0.5)
-        )
+        return (-0.5, w - 0.5, -0.5, h - 0.5)
+
+    def _image_flags(self, xy: np.ndarray, flags: np.ndarray) -> np.ndarray:
+        b = self.bounds
+        if b is None:
+            return flags
+        out = (xy[:, 0] < b[0]) | (xy[:, 0] > b[1]) | (xy[:, 1] < b[2]) | (xy[:, 1] > b[3])
         flags = flags.copy()
         flags[out] = FLAG_OUTSIDE_IMAGE
         return flags
@@ -200,8 +206,7 @@ class FilmCorrection:
             raise SoftplotError(f"--to must be film or photo, got {to!r}")
         p = np.asarray(xy_px, float).reshape(-1, 2)
         post = self.interior.film_to_photo_xy if to == "photo" else None
-        out, flags = self.model.pixel_to_film(p, post)
-        return out, self._image_flags(p, flags)
+        return self.model.pixel_to_film(p, post, self.bounds)
 
     def to_pixel(self, xy_mm, frm: str = "film") -> tuple[np.ndarray, np.ndarray]:
         """Film or photo (N, 2) mm -> pixel (N, 2), and flags (N,) uint8."""

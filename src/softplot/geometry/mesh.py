@@ -178,6 +178,20 @@ def _invert_affines(A: np.ndarray) -> np.ndarray:
 
 
 _CHUNK = 32768  # points per chunk of the vectorised path (cache-sized temporaries)
+_POOLS: dict = {}
+
+
+def _pool(threads):
+    """A shared thread pool (``threads`` workers; default the CPU count, at most 8)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    n = int(threads) if threads else min(os.cpu_count() or 1, 8)
+    if n <= 1:
+        return None
+    if n not in _POOLS:
+        _POOLS[n] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="softplot-mesh")
+    return _POOLS[n]
 
 
 def _rows(a: np.ndarray) -> list[np.ndarray]:
@@ -222,8 +236,9 @@ class _Plane:
             self.to_raw = Ht @ S[None]  # raw -> (s, t)
             self.from_raw /= self.from_raw[:, 2:3, 2:3]
             self.to_raw /= self.to_raw[:, 2:3, 2:3]
-            self.to_T = _rows(self.to_raw.reshape(-1, 9).T)
-            self.from_T = _rows(self.from_raw.reshape(-1, 9).T)
+            # normalised (h33 = 1): 8 coefficients per cell
+            self.to_T = _rows(self.to_raw.reshape(-1, 9).T[:8])
+            self.from_T = _rows(self.from_raw.reshape(-1, 9).T[:8])
         elif kind not in ("mesh-bilinear", "mesh-affine"):  # pragma: no cover
             raise SoftplotError(f"unknown mesh kind {kind!r}")
         if kind in ("mesh-bilinear", "mesh-affine"):
@@ -280,7 +295,7 @@ class _Plane:
         """Cell parameters (s, t) and triangle index of raw points (x, y) in cells k."""
         if self.kind == "mesh-homography":
             h = [np.take(r, k) for r in self.to_T]
-            w = h[6] * x + h[7] * y + h[8]
+            w = h[6] * x + h[7] * y + 1.0
             s = (h[0] * x + h[1] * y + h[2]) / w
             t = (h[3] * x + h[4] * y + h[5]) / w
             return s, t, None
@@ -327,7 +342,7 @@ class _Plane:
         """Raw plane coordinates X, Y of cell parameters (s, t) in cells k."""
         if self.kind == "mesh-homography":
             h = [np.take(r, k) for r in self.from_T]
-            w = h[6] * s + h[7] * t + h[8]
+            w = h[6] * s + h[7] * t + 1.0
             return (h[0] * s + h[1] * t + h[2]) / w, (h[3] * s + h[4] * t + h[5]) / w
         if self.kind == "mesh-bilinear":
             return self.bil_from_local(k, s, t)
@@ -407,31 +422,57 @@ class _Plane:
             tri[out] = 2
         return k, s, t, tri, inside
 
-    def map_to(self, other: "_Plane", xy: np.ndarray, post=None):
-        """Map raw points (N, 2) of this plane into ``other``: (N, 2) and flags, chunked.
+    def map_chunk(self, other: "_Plane", x: np.ndarray, y: np.ndarray, post=None, bounds=None):
+        """Map one chunk of raw points (contiguous x, y) into ``other``: X, Y, flags."""
+        bad = ~np.isfinite(x + y)
+        anybad = bool(bad.any())
+        if anybad:
+            x = np.where(bad, self.cond.centre[0], x)
+            y = np.where(bad, self.cond.centre[1], y)
+        k, s, t, tri, ins = self.locate(x, y)
+        X, Y = other.from_local(k, s, t, tri)
+        if post is not None:
+            X, Y = post(X, Y)
+        flags = (~ins).view(np.uint8)  # FLAG_OK 0, FLAG_OUTSIDE_RESEAU 1
+        if bounds is not None:
+            x0, x1, y0, y1 = bounds
+            off = (x < x0) | (x > x1) | (y < y0) | (y > y1)
+            flags = np.where(off, np.uint8(FLAG_OUTSIDE_IMAGE), flags)
+        if anybad:
+            X = np.where(bad, np.nan, X)
+            Y = np.where(bad, np.nan, Y)
+        return X, Y, flags
 
-        ``post(X, Y) -> (X2, Y2)``, if given, is applied per chunk (e.g. interior orientation).
+    def map_to(self, other: "_Plane", xy: np.ndarray, post=None, bounds=None, threads=None):
+        """Map raw points (N, 2) of this plane into ``other``: (N, 2) and flags (N,) uint8.
+
+        Works in chunks of :data:`_CHUNK` points (cache-sized temporaries), on a thread pool
+        when there are many (NumPy releases the GIL). ``post(X, Y) -> (X2, Y2)``, if given,
+        is applied per chunk (e.g. the interior orientation); ``bounds`` = (x0, x1, y0, y1)
+        of this plane flags points outside it :data:`FLAG_OUTSIDE_IMAGE`. Non-finite points
+        give NaN.
         """
         n = xy.shape[0]
         out = np.empty((n, 2))
-        inside = np.empty(n, bool)
-        finite = np.isfinite(xy).all(axis=1)
-        if not finite.all():
-            xy = np.where(finite[:, None], xy, self.cond.centre)
-        for a in range(0, n, _CHUNK):
+        flags = np.empty(n, np.uint8)
+
+        def run(a: int) -> None:
             b = min(a + _CHUNK, n)
             x = np.ascontiguousarray(xy[a:b, 0])
             y = np.ascontiguousarray(xy[a:b, 1])
-            k, s, t, tri, ins = self.locate(x, y)
-            X, Y = other.from_local(k, s, t, tri)
-            if post is not None:
-                X, Y = post(X, Y)
+            X, Y, f = self.map_chunk(other, x, y, post, bounds)
             out[a:b, 0] = X
             out[a:b, 1] = Y
-            inside[a:b] = ins
-        if not finite.all():
-            out[~finite] = np.nan
-        return out, inside
+            flags[a:b] = f
+
+        starts = range(0, n, _CHUNK)
+        pool = _pool(threads) if n > 4 * _CHUNK else None
+        if pool is None:
+            for a in starts:
+                run(a)
+        else:
+            list(pool.map(run, starts))
+        return out, flags
 
     # -- single point (plain Python floats) ---------------------------------------------------
 
@@ -683,20 +724,21 @@ class MeshModel:
 
     # -- vectorised -----------------------------------------------------------------------
 
-    def pixel_to_film(self, xy, post=None) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel (N, 2) px -> film (N, 2) mm, and flags (N,) uint8 (0 ok, 1 outside-reseau).
+    def pixel_to_film(self, xy, post=None, bounds=None, threads=None):
+        """Pixel (N, 2) px -> film (N, 2) mm, and flags (N,) uint8.
 
+        Flags: 0 ok, 1 outside-reseau (nearest border mesh used), 2 outside-image when
+        ``bounds`` = (x0, x1, y0, y1) in px is given and the point lies outside it.
         ``post(x_mm, y_mm) -> (x, y)``, if given, is applied chunk by chunk to the film
         coordinates (used to chain the interior orientation without another pass over N).
+        ``threads``: worker threads for large N (default: the CPU count; 1 = none).
         Non-finite input points give NaN.
         """
-        out, inside = self._px.map_to(self._film, _points(xy), post)
-        return out, np.where(inside, FLAG_OK, FLAG_OUTSIDE_RESEAU).astype(np.uint8)
+        return self._px.map_to(self._film, _points(xy), post, bounds, threads)
 
-    def film_to_pixel(self, xy) -> tuple[np.ndarray, np.ndarray]:
+    def film_to_pixel(self, xy, threads=None) -> tuple[np.ndarray, np.ndarray]:
         """Film (N, 2) mm -> pixel (N, 2) px, and flags (N,) uint8 (0 ok, 1 outside-reseau)."""
-        out, inside = self._film.map_to(self._px, _points(xy))
-        return out, np.where(inside, FLAG_OK, FLAG_OUTSIDE_RESEAU).astype(np.uint8)
+        return self._film.map_to(self._px, _points(xy), None, None, threads)
 
     def cells_of_pixel(self, xy) -> np.ndarray:
         """Quad index ``r * (cols-1) + c`` of pixel points (N,), nearest border quad outside."""

@@ -39,6 +39,7 @@ from softplot.errors import SoftplotError
 from softplot.geometry.mesh import (
     _FILL_KIND,
     FLAG_OK,
+    FLAG_OUTSIDE_IMAGE,
     FLAG_OUTSIDE_RESEAU,
     MESH_KINDS,
     MeshModel,
@@ -154,7 +155,9 @@ class CorrectionModel:
 
     method: str
 
-    def pixel_to_film(self, xy, post=None):  # pragma: no cover - interface
+    def pixel_to_film(self, xy, post=None, bounds=None):  # pragma: no cover - interface
+        """Pixel (N, 2) -> film (N, 2) mm and flags; ``post`` chains a film -> photo map per
+        chunk; ``bounds`` = (x0, x1, y0, y1) px flags points outside it ``outside-image``."""
         raise NotImplementedError
 
     def film_to_pixel(self, xy):  # pragma: no cover - interface
@@ -176,8 +179,8 @@ class _MeshCorrection(CorrectionModel):
         self.n_used = n_used
         self.residuals_um = np.zeros((n_used, 2))  # a mesh interpolates its crosses
 
-    def pixel_to_film(self, xy, post=None):
-        return self.mesh.pixel_to_film(xy, post)
+    def pixel_to_film(self, xy, post=None, bounds=None):
+        return self.mesh.pixel_to_film(xy, post, bounds)
 
     def film_to_pixel(self, xy):
         return self.mesh.film_to_pixel(xy)
@@ -253,13 +256,18 @@ class GlobalModel(CorrectionModel):
             return a.film_to_pixel(xy)[1]
         return np.where(a[1].inside(xy), FLAG_OK, FLAG_OUTSIDE_RESEAU).astype(np.uint8)
 
-    def pixel_to_film(self, xy, post=None):
+    def pixel_to_film(self, xy, post=None, bounds=None):
         p = np.asarray(xy, float).reshape(-1, 2)
         out = self.transform.forward(p * self._flip)
         if post is not None:
             X, Y = post(out[:, 0].copy(), out[:, 1].copy())
             out = np.column_stack([X, Y])
-        return out, self._flags_pixel(p)
+        flags = self._flags_pixel(p)
+        if bounds is not None:
+            x0, x1, y0, y1 = bounds
+            off = (p[:, 0] < x0) | (p[:, 0] > x1) | (p[:, 1] < y0) | (p[:, 1] > y1)
+            flags[off] = FLAG_OUTSIDE_IMAGE
+        return out, flags
 
     def film_to_pixel(self, xy):
         f = np.asarray(xy, float).reshape(-1, 2)
