@@ -283,3 +283,73 @@ def test_truth_keys():
     top_left, bottom_right = truth["marks"][0], truth["marks"][-1]
     assert top_left["x"] < bottom_right["x"] and top_left["y"] < bottom_right["y"]
     assert math.isclose(truth["dpi"], 150.0)
+
+
+def _film_quadrature_centroid(mapping, centre, shape) -> np.ndarray:
+    """Exact pixel centroid of a deformed mark: integrate p(f) |det J(f)| over its film shape."""
+    xg, wg = np.polynomial.legendre.leggauss(40)
+    num, den = np.zeros(2), 0.0
+
+    def add(pts, w, sign):
+        nonlocal num, den
+        det = np.abs(np.linalg.det(mapping.jacobian(pts)))
+        num = num + sign * (w * det) @ mapping.film_to_pixel(pts)
+        den = den + sign * float((w * det).sum())
+
+    def panels(h):
+        e = np.linspace(-h, h, 11)
+        a, b = e[:-1, None], e[1:, None]
+        xs = ((xg[None, :] + 1) / 2 * (b - a) + a).ravel()
+        ws = (wg[None, :] / 2 * (b - a)).ravel()
+        return xs, ws
+
+    for hx, hy, sign in shape.rects:
+        (x, wx), (y, wy) = panels(hx), panels(hy)
+        xx, yy = np.meshgrid(x, y)
+        add(centre + np.column_stack([xx.ravel(), yy.ravel()]), np.outer(wy, wx).ravel(), sign)
+    th = (np.arange(400) + 0.5) * 2 * np.pi / 400
+    for rad, sign in shape.discs:
+        r = (xg + 1) / 2 * rad
+        rr, tt = np.meshgrid(r, th)
+        w = np.outer(np.full(400, 2 * np.pi / 400), wg / 2 * rad * r)
+        pts = centre + np.column_stack([(rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel()])
+        add(pts, w.ravel(), sign)
+    return num / den
+
+
+@pytest.mark.parametrize("dpi,rot,blur", [(600, 0.0, 0.5), (1500, 3.7, 1.0), (2400, -6.0, 0.7)])
+def test_deformed_mark_centroid_matches_film_quadrature(dpi, rot, blur):
+    """Through the full mapping: the imaged mark's centroid is that of the deformed shape."""
+    from softplot.synthetic.mapping import Deformation, Scanner, TruthMapping
+    from softplot.synthetic.marks import circle_dot_shape, cross_shape, render_marks
+
+    d = Deformation.random((56.0, 56.0), 100.0, 500.0, np.random.default_rng(1))
+    m = TruthMapping(d, Scanner(dpi, rot, 800.0, 3000.0, 3000.0))
+    centres = np.array([[24.0, 24.0], [20.3, -17.1], [-11.0, 3.0]])
+    for shape in (cross_shape(0.8, 0.04), circle_dot_shape(1.6, 0.08, 0.15)):
+        idx, col, row, val, blurred = render_marks(m, centres, shape, blur)
+        assert blurred
+        shifts = []
+        for k, c in enumerate(centres):
+            sel = idx == k
+            got = np.array([(val[sel] * col[sel]).sum(), (val[sel] * row[sel]).sum()])
+            got /= val[sel].sum()
+            ref = _film_quadrature_centroid(m, c, shape)
+            assert np.max(np.abs(got - ref)) < 2e-4, (shape.kind, got - ref)
+            shifts.append(np.max(np.abs(ref - m.film_to_pixel(c))))
+        if shape.kind == "circle-dot" and dpi >= 1500:
+            assert max(shifts) > 2e-3  # the curvature is really there (and rendered)
+
+
+def test_truth_reports_the_curvature_shift():
+    spec = ScanSpec(dpi=600, deform_um=100, crop_mm=(15, 15, 15, 15), **CLEAN)
+    img, truth = render_scan("rollei-6006", spec, seed=4)
+    from softplot.synthetic import TruthMapping
+    from softplot.synthetic.marks import cross_shape
+
+    m = TruthMapping.from_truth(truth)
+    for k in [k for k in truth["marks"] if k["state"] == "visible"][:5]:
+        ref = _film_quadrature_centroid(m, np.array([k["film_x"], k["film_y"]]),
+                                        cross_shape(0.8, 0.04))
+        shift = ref - np.array([k["x"], k["y"]])
+        assert np.allclose(k["centroid_shift_px"], shift, atol=5e-5)

@@ -12,7 +12,9 @@ Truth JSON keys: ``image``, ``camera``, ``width``, ``height``, ``dpi``, ``polari
 (certificate film mm), ``x``, ``y`` (exact pixel position, pixel system), ``visible``,
 ``state`` "visible"|"covered"|"cut"|"outside", ``inside_fraction`` (share of the mark's area
 inside the image), ``shape``, ``contrast`` and ``contrast_min`` (local mark-minus-background
-amplitude, grey, fraction of full scale), ``damaged`` (dust or a scratch touches it)),
+amplitude, grey, fraction of full scale), ``damaged`` (dust or a scratch touches it),
+``centroid_shift_px`` (intensity centroid of the noise-free imaged mark minus ``x``, ``y``:
+the deformation's curvature across the mark)),
 ``mapping`` (parameters of :class:`TruthMapping`: undeformed film mm <-> pixel), ``render``
 (``blur_sigma_px``, ``noise_sigma``, ``contrast``, ``background``, ``mark_level``,
 ``line_width_px``, ``arm_half_length_px``, ...) and ``spec`` (the :class:`ScanSpec`).

@@ -421,6 +421,15 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
         lo_, hi_ = np.floor(o.min(axis=0)).astype(int), np.ceil(o.max(axis=0)).astype(int)
         box[i] = (lo_[0] - halo, lo_[1] - halo, hi_[0] + halo, hi_[1] + halo)
     state = np.where(geom_in, "visible", np.where(frac <= 1e-6, "outside", "cut")).astype(object)
+    # intensity centroid of each imaged mark minus its true position (the mapping's curvature
+    # across the mark; 0 for an affine mapping)
+    shift = np.full((n_marks, 2), np.nan)
+    if post_blur and len(m_idx):
+        cx = np.bincount(m_idx, weights=m_val * m_col, minlength=n_marks)
+        cy = np.bincount(m_idx, weights=m_val * m_row, minlength=n_marks)
+        ok = total > 0
+        shift[ok, 0] = cx[ok] / total[ok] - xy_px[ok, 0]
+        shift[ok, 1] = cy[ok] / total[ok] - xy_px[ok, 1]
 
     # -- levels ---------------------------------------------------------------------------
     mark_level = spec.background - spec.contrast  # positive film, fraction of full scale
@@ -502,6 +511,9 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
             "contrast": float(local[i, 0]),
             "contrast_min": float(local[i, 1]),
             "damaged": bool(damaged[i]),
+            "centroid_shift_px": (
+                None if np.isnan(shift[i, 0]) else [float(shift[i, 0]), float(shift[i, 1])]
+            ),
         })
     noise_grey = spec.noise_sigma * (math.sqrt(sum(w * w for w in LUMA)) if channels == 3 else 1.0)
     truth = {
