@@ -16,6 +16,7 @@ from softplot.motors import (
     MotorCommandError,
     MotorDisconnected,
     MotorError,
+    MotorFault,
     MotorTimeout,
 )
 from softplot.motors.grbl import GrblMotors, parse_status
@@ -258,3 +259,17 @@ def test_one_driver_per_controller(sim):
             GrblMotors(sim.path, timeout=0.5)
         m.move_to(0.1, 0.0)  # the first driver is undisturbed
         assert m.position() == pytest.approx((0.1, 0.0))
+
+
+def test_streamed_motion_line_rejected_becomes_a_fault(sim):
+    with GrblMotors(sim.path, timeout=2) as m:
+        m.command("$J=G91X5F60")  # a long jog: G-code is locked out meanwhile (error:9)
+        m.move_to(0.2, 0.2, wait=False)  # char-count: returns before the reply
+        with pytest.raises(MotorFault, match=r"motion line rejected.*error:9"):
+            m.wait(timeout=2)
+        with pytest.raises(MotorFault):
+            m.move_to(0.3, 0.3)  # the fault sticks
+        m.realtime(b"\x85")  # jog cancel
+        m.recover()
+        m.move_to(0.3, 0.3)
+        assert m.position() == pytest.approx((0.3, 0.3))

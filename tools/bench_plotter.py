@@ -8,7 +8,8 @@ Usage::
    interface) with VirtualMotors, in contour and single-point mode, without and with affine
    film corrections (numpy callables). Target: median <= 100 us (the STEREOBIT/20 took 20 ms).
 2. Round trip through GrblMotors over the simulated serial line (pty, pyserial): a status
-   query ``?`` -> ``<...>`` and a motion line ``G90G1..`` -> ``ok``.
+   query ``?`` -> ``<...>``, a motion line ``G90G1..`` -> ``ok``, and the plotter's own
+   command ``move_to(wait=False)`` (char-count streaming: returns once the line is written).
 
 Prints median, 10th and 99th percentiles in microseconds.
 """
@@ -71,13 +72,19 @@ def bench_serial(n: int):
             t0 = time.perf_counter()
             m.status()
             st.append(time.perf_counter() - t0)
+        rt = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            m.command(f"G90G1X{0.01 * (i % 50):.3f}Y0F600", sync=False)
+            rt.append(time.perf_counter() - t0)
+            m.wait(timeout=5)
         mv = []
         for i in range(n):
             t0 = time.perf_counter()
-            m.move_to(0.01 * (i % 50), 0.0, wait=False)
+            m.move_to(0.01 * (i % 50) + 0.005, 0.0, wait=False)
             mv.append(time.perf_counter() - t0)
             m.wait(timeout=5)
-        return _stats(st), _stats(mv)
+        return _stats(st), _stats(rt), _stats(mv)
 
 
 def main():
@@ -96,9 +103,13 @@ def main():
             med, p10, p99 = bench_cycle(a.cycles, mode, corr)
             label = f"cycle {mode}, {'affine film correction' if corr else 'no film correction'}"
             print(f"| {label} | {med:.1f} | {p10:.1f} | {p99:.1f} |")
-    (s_med, s10, s99), (m_med, m10, m99) = bench_serial(a.serial)
-    print(f"| GRBL status round trip (? -> <..>) | {s_med:.0f} | {s10:.0f} | {s99:.0f} |")
-    print(f"| GRBL motion line round trip (G1 -> ok) | {m_med:.0f} | {m10:.0f} | {m99:.0f} |")
+    st, rt, mv = bench_serial(a.serial)
+    for label, (med, p10, p99) in (
+        ("GRBL status round trip (? -> <..>)", st),
+        ("GRBL motion line round trip (G1 -> ok)", rt),
+        ("GrblMotors.move_to(wait=False), char-count streaming", mv),
+    ):
+        print(f"| {label} | {med:.0f} | {p10:.0f} | {p99:.0f} |")
 
 
 if __name__ == "__main__":

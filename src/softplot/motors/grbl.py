@@ -236,6 +236,7 @@ class GrblMotors(Motors):
         self._reader = None
         self._cv = threading.Condition()
         self._inflight: deque[_Pending] = deque()
+        self._motion: deque[_Pending] = deque()  # streamed motion lines not yet checked
         self._write_lock = threading.Lock()
         self._status: GrblStatus | None = None
         self._status_seq = 0
@@ -288,6 +289,7 @@ class GrblMotors(Motors):
         self._sync_target(st)
 
     def _sync_target(self, st: GrblStatus) -> None:
+        self._motion.clear()
         with self._lock:
             self._dir = [1, 1]
             self._target = list(self._steps_of(st))
@@ -557,9 +559,33 @@ class GrblMotors(Motors):
 
     def _start_move(self, motor_steps, speed_mm_s):
         self._check_fault()
+        self._check_motion_replies()
         x, y = (s * ax.resolution_mm for s, ax in zip(motor_steps, self.axes, strict=True))
         feed = min(speed_mm_s) * 60.0
-        self.command(f"G90G1X{x:.3f}Y{y:.3f}F{feed:.0f}", sync=False)
+        p = self.send(f"G90G1X{x:.3f}Y{y:.3f}F{feed:.0f}")
+        if self.streaming == "send-response":
+            self._result(p, None)
+        else:  # char-count: the ok is collected later (next move, wait, busy)
+            self._motion.append(p)
+
+    def _check_motion_replies(self, timeout: float | None = 0.0) -> bool:
+        """Collect the replies of streamed motion lines; raise on ``error:N`` (which also
+        becomes the fault: the plate is not where the target says). Returns True when every
+        motion line has been answered within ``timeout`` seconds."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while self._motion:
+            p = self._motion[0]
+            left = None if t_end is None else max(t_end - time.monotonic(), 0.0)
+            if not p.done.wait(left):
+                return False
+            self._motion.popleft()
+            try:
+                self._result(p, 0.0)
+            except MotorCommandError as exc:
+                self._motion.clear()
+                self.fault = MotorFault(f"motion line rejected: {exc}")
+                raise self.fault from exc
+        return True
 
     def _busy(self):
         self._check_fault()
@@ -567,6 +593,8 @@ class GrblMotors(Motors):
 
     def wait(self, timeout: float | None = None) -> bool:
         t_end = None if timeout is None else time.monotonic() + timeout
+        if not self._check_motion_replies(self.timeout if timeout is None else timeout):
+            return False
         while True:
             self._check_fault()
             st = self.status()
@@ -632,6 +660,7 @@ class GrblMotors(Motors):
                 self.soft_reset()  # flushes the planner; no alarm after a completed hold
             with self._cv:
                 self._inflight.clear()
+            self._motion.clear()
         except MotorFault:
             pass
 
