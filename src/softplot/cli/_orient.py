@@ -225,7 +225,7 @@ def report(
     params: list[tuple[str, str, float, float, int]],
     sigma0: float,
     sigma0_prior: float | None,
-    redundancy: int,
+    redundancy: int | None,
     unit0: str,
     table_head: list[str] | None = None,
     table: list[tuple[str, list[float], bool]] | None = None,
@@ -244,7 +244,8 @@ def report(
         Free lines under the title.
     params : list of (name, unit, value, std, decimals)
     sigma0, sigma0_prior : float
-    redundancy : int
+    redundancy : int or None
+        None: no adjustment (the sigma0 line is left out).
     unit0 : str
         Unit of sigma0.
     table_head : list of str
@@ -264,8 +265,9 @@ def report(
     bar = "=" * 72
     out = [bar, f"{title}".ljust(52) + f"softplot {__version__}".rjust(20), bar]
     out += header
-    s0p = f" (a priori {fnum(sigma0_prior, 4)} {unit0})" if sigma0_prior else ""
-    out.append(f"sigma0 = {fnum(sigma0, 4)} {unit0}{s0p}   redundancy r = {redundancy}")
+    if redundancy is not None:
+        s0p = f" (a priori {fnum(sigma0_prior, 4)} {unit0})" if sigma0_prior else ""
+        out.append(f"sigma0 = {fnum(sigma0, 4)} {unit0}{s0p}   redundancy r = {redundancy}")
     if params:
         out.append("")
         out.append(f"{'parameter':<14}{'unit':<8}{'value':>22}{'std':>16}")

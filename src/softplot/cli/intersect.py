@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from softplot.adjust import critical_value
 from softplot.cli._orient import ang_in, angles_option, json_option, read_table, report, write_json
 from softplot.errors import SoftplotError
 from softplot.orientation.intersection import intersect
@@ -34,9 +35,17 @@ from softplot.orientation.intersection import intersect
     show_default=True,
     help="Standard error of the photo coordinates, mm.",
 )
+@click.option(
+    "--alpha",
+    "alpha0",
+    type=float,
+    default=0.001,
+    show_default=True,
+    help="Significance level of data snooping.",
+)
 @angles_option
 @json_option
-def command(photos_path, pts_path, sigma_image, angle_unit, json_path) -> None:
+def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -> None:
     """Space intersection of two or more rays per point, with the covariance of each point.
 
     Points seen in one photo only are skipped (listed). JSON: points (list of name, X, Y, Z,
@@ -89,6 +98,7 @@ def command(photos_path, pts_path, sigma_image, angle_unit, json_path) -> None:
         sigma=sigma_image,
         n_points=len(names),
         point_names=names,
+        alpha0=alpha0,
     )
     data = {
         "points": [
@@ -132,7 +142,8 @@ def command(photos_path, pts_path, sigma_image, angle_unit, json_path) -> None:
                     names, r.XYZ.tolist(), r.std.tolist(), r.rms, r.n_rays, r.flagged, strict=True
                 )
             ],
-            k=None,
+            k=critical_value(alpha0),
+            alpha0=alpha0,
             notes=notes,
         )
     )

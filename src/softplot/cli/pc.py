@@ -294,7 +294,7 @@ def differential_cmd(a_path, b_path, c_path, json_path) -> None:
             params,
             float("nan"),
             None,
-            0,
+            None,
             "mm",
         )
     )
