@@ -43,6 +43,8 @@ def test_linear_matches_closed_form_and_statistics():
     assert adj.value("b") == pytest.approx(xh[1])
     np.testing.assert_allclose(np.diag(adj.correlation), 1.0)
     assert 0 < adj.global_test_p <= 1
+    text = adj.summary()
+    assert "converged" in text and f"r = {r}" in text and "+- " in text
 
 
 def test_noise_free_recovery():

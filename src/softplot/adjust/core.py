@@ -181,6 +181,23 @@ class Adjustment:
         """Standard deviation of unknown ``name``."""
         return float(self.std[self.index(name)])
 
+    def summary(self) -> str:
+        """Convergence and precision report: unknowns with std, sigma0, r, flagged observations."""
+        head = (
+            f"{'converged' if self.converged else 'NOT converged'} after {self.iterations} "
+            f"iteration(s); n = {self.n_obs}, u = {self.n_unknowns}, c = {self.n_constraints}, "
+            f"r = {self.redundancy}; sigma0 = {self.sigma0:.6g} (a priori {self.sigma0_prior:.6g})"
+        )
+        lines = [head]
+        for nm, x, s, f in zip(self.names, self.x, self.std, self.fixed, strict=True):
+            lines.append(f"  {nm:<16}{x:>20.10g}  " + ("fixed" if f else f"+- {s:.4g}"))
+        k = np.nonzero(self.flagged)[0]
+        lines.append(
+            f"data snooping (alpha0 = {self.alpha0:g}, |w| > {self.critical_value:.2f}): "
+            + (", ".join(f"obs {i} (w = {self.standardized[i]:.2f})" for i in k[:10]) or "none")
+        )
+        return "\n".join(lines)
+
     def sub_covariance(self, names: Sequence[str]) -> np.ndarray:
         """Covariance block of the unknowns ``names`` (in that order)."""
         idx = [self.index(n) for n in names]
