@@ -1,0 +1,222 @@
+"""Coarse search: a reduced overview of the scan and normalised cross-correlation peaks.
+
+The overview is built block by block straight from ``Scan.data`` (``cv2.resize`` with
+``INTER_AREA`` on strips of rows), so a huge or memory-mapped scan is never converted to float
+as a whole. Overview pixel ``(i, j)`` averages the full-resolution pixels
+``[f*i, f*i + f - 1] x [f*j, f*j + f - 1]``, hence (pixel system, centre convention)::
+
+    x_full = f * x_overview + (f - 1) / 2
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from softplot.marks.template import MarkShape, render
+
+__all__ = ["overview", "ov_to_full", "full_to_ov", "ncc_map", "find_peaks", "Peaks",
+           "local_std"]
+
+_STRIP_BYTES = 1 << 24
+
+
+def ov_to_full(xy, factor: int) -> np.ndarray:
+    """Overview pixel coordinates -> full-resolution pixel coordinates."""
+    return np.asarray(xy, float) * factor + 0.5 * (factor - 1)
+
+
+def full_to_ov(xy, factor: int) -> np.ndarray:
+    """Full-resolution pixel coordinates -> overview pixel coordinates."""
+    return (np.asarray(xy, float) - 0.5 * (factor - 1)) / factor
+
+
+def overview(scan, factor: int, window: tuple[slice, slice] | None = None) -> np.ndarray:
+    """Grey overview of a scan (or of a window of it), reduced by an integer factor.
+
+    Parameters
+    ----------
+    scan : softplot.io.Scan
+        The scan; only ``data``, ``channels``, ``full_scale``, ``min_is_white`` and ``grey``
+        are used.
+    factor : int
+        Reduction factor (>= 1); rows and columns beyond a multiple of it are dropped.
+    window : (slice, slice), optional
+        Full-resolution window (rows, cols) with unit steps; default the whole scan.
+
+    Returns
+    -------
+    ndarray
+        float32 grey in [0, 1], shape ``(h // factor, w // factor)``, overview pixel system.
+    """
+    f = max(int(factor), 1)
+    data = scan.data
+    r0, r1, c0, c1 = 0, data.shape[0], 0, data.shape[1]
+    if window is not None:
+        r0, r1, _ = window[0].indices(data.shape[0])
+        c0, c1, _ = window[1].indices(data.shape[1])
+    H, W = (r1 - r0) // f, (c1 - c0) // f
+    out = np.empty((max(H, 0), max(W, 0)), np.float32)
+    if H <= 0 or W <= 0:
+        return out
+    ch = scan.channels
+    native = data.dtype in (np.uint8, np.uint16) and ch in (1, 2, 3, 4)
+    row_bytes = (c1 - c0) * (data.dtype.itemsize if native else 4) * max(ch, 1)
+    step = max(1, _STRIP_BYTES // max(row_bytes * f, 1)) * f
+    scale = np.float32(1.0 / scan.full_scale)
+    for a in range(0, H * f, step):
+        b = min(a + step, H * f)
+        rows = slice(r0 + a, r0 + b)
+        cols = slice(c0, c0 + W * f)
+        if native:
+            blk = data[rows, cols]
+            if blk.ndim == 3:
+                blk = blk[..., :3] if ch >= 3 else blk[..., 0]
+            blk = np.ascontiguousarray(blk)
+            if f > 1:
+                red = cv2.resize(blk, (W, (b - a) // f), interpolation=cv2.INTER_AREA)
+            else:
+                red = blk
+            if red.ndim == 3:
+                red = red.astype(np.float32)
+                g = 0.299 * red[..., 0] + 0.587 * red[..., 1] + 0.114 * red[..., 2]
+            else:
+                g = red
+            np.multiply(g, scale, out=out[a // f : b // f], dtype=np.float32)
+        else:
+            g = scan.grey((rows, cols))
+            out[a // f : b // f] = cv2.resize(g, (W, (b - a) // f),
+                                              interpolation=cv2.INTER_AREA) if f > 1 else g
+            continue
+        if scan.min_is_white:
+            np.subtract(np.float32(1.0), out[a // f : b // f], out=out[a // f : b // f])
+    if not native:
+        return out
+    np.minimum(out, np.float32(1.0), out=out)
+    return out
+
+
+def ncc_map(image: np.ndarray, shape: MarkShape, s: float, A=None,
+            arm_half: float | None = None) -> tuple[np.ndarray, int]:
+    """Normalised cross-correlation of ``image`` with a rendered mark template.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+        Grey image (overview or full-resolution window).
+    shape : MarkShape
+        Mark at the image's scale (px).
+    s : float
+        Template blur (px).
+    A : (2, 2), optional
+        Pixel -> mark-frame affine (rotation) of the template.
+    arm_half : float, optional
+        Shorten a cross's bars to this half-length (px) for tolerance to rotation.
+
+    Returns
+    -------
+    R : (H - 2h, W - 2h) float32
+        ``TM_CCOEFF_NORMED``; ``R[i, j]`` belongs to image pixel ``(x, y) = (j + h, i + h)``.
+        Positive for a bright mark, negative for a dark one.
+    h : int
+        Template half-size (the offset above).
+    """
+    if arm_half is not None and shape.kind == "cross":
+        shape = MarkShape("cross", length=min(shape.length, 2.0 * arm_half), width=shape.width)
+    tpl = render(shape, s, A=A)
+    h = tpl.shape[0] // 2
+    if image.shape[0] < tpl.shape[0] or image.shape[1] < tpl.shape[1]:
+        return np.zeros((0, 0), np.float32), h
+    R = cv2.matchTemplate(np.ascontiguousarray(image, np.float32), tpl, cv2.TM_CCOEFF_NORMED)
+    np.nan_to_num(R, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return R, h
+
+
+def local_std(image: np.ndarray, half: int) -> np.ndarray:
+    """Standard deviation of ``image`` over ``(2*half+1)^2`` boxes (same shape, float32)."""
+    k = (2 * half + 1, 2 * half + 1)
+    m = cv2.boxFilter(image, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(image * image, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    return np.sqrt(np.maximum(m2 - m * m, 0.0))
+
+
+@dataclass
+class Peaks:
+    """NCC peaks: positions (image pixel system), correlation values and signs."""
+
+    xy: np.ndarray
+    score: np.ndarray
+    sign: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+    def select(self, m) -> "Peaks":
+        return Peaks(self.xy[m], self.score[m], self.sign[m])
+
+
+def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
+               max_peaks: int, sign: int = 0, contrast: np.ndarray | None = None,
+               min_contrast: float = 0.0) -> Peaks:
+    """Local extrema of an NCC map with sub-pixel (parabola) positions.
+
+    Parameters
+    ----------
+    R : ndarray
+        NCC map from :func:`ncc_map`.
+    offset : int
+        Its offset ``h`` (image pixel = map index + h).
+    min_dist : float
+        Minimum distance between peaks (px).
+    threshold : float
+        Minimum ``|R|``.
+    max_peaks : int
+        Keep the strongest ones.
+    sign : int
+        +1 bright marks only, -1 dark only, 0 both.
+    contrast : ndarray, optional
+        Local standard deviation of the image (same shape as the image): peaks where it is
+        below ``min_contrast`` are dropped (flat areas give meaningless correlations).
+    """
+    if R.size == 0:
+        return Peaks(np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
+    rad = max(int(min_dist), 1)
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * rad + 1, 2 * rad + 1))
+    out = []
+    for sg in ((1, -1) if sign == 0 else (sign,)):
+        S = R if sg > 0 else -R
+        D = cv2.dilate(S, k)
+        m = (S >= D) & (S > threshold)
+        iy, ix = np.nonzero(m)
+        if iy.size == 0:
+            continue
+        v = S[iy, ix]
+        if iy.size > 4 * max_peaks:
+            keep = np.argpartition(-v, 4 * max_peaks)[: 4 * max_peaks]
+            iy, ix, v = iy[keep], ix[keep], v[keep]
+        # sub-pixel parabola through the 3x3 neighbourhood
+        H, W = S.shape
+        ym, yp = np.clip(iy - 1, 0, H - 1), np.clip(iy + 1, 0, H - 1)
+        xm, xp = np.clip(ix - 1, 0, W - 1), np.clip(ix + 1, 0, W - 1)
+        dx_den = S[iy, xm] - 2 * v + S[iy, xp]
+        dy_den = S[ym, ix] - 2 * v + S[yp, ix]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dx = np.where(dx_den < 0, 0.5 * (S[iy, xm] - S[iy, xp]) / dx_den, 0.0)
+            dy = np.where(dy_den < 0, 0.5 * (S[ym, ix] - S[yp, ix]) / dy_den, 0.0)
+        dx = np.clip(np.nan_to_num(dx), -0.5, 0.5)
+        dy = np.clip(np.nan_to_num(dy), -0.5, 0.5)
+        xy = np.column_stack([ix + dx + offset, iy + dy + offset])
+        if contrast is not None:
+            cx = np.clip(np.round(xy[:, 0]).astype(int), 0, contrast.shape[1] - 1)
+            cy = np.clip(np.round(xy[:, 1]).astype(int), 0, contrast.shape[0] - 1)
+            ok = contrast[cy, cx] >= min_contrast
+            xy, v = xy[ok], v[ok]
+        out.append(Peaks(xy, v.astype(float), np.full(len(v), sg)))
+    if not out:
+        return Peaks(np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
+    p = Peaks(np.concatenate([o.xy for o in out]), np.concatenate([o.score for o in out]),
+              np.concatenate([o.sign for o in out]))
+    order = np.argsort(-p.score)[:max_peaks]
+    return p.select(order)

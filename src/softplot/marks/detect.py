@@ -1,0 +1,426 @@
+"""``detect``: find and measure every reseau cross and fiducial mark of a scan.
+
+Pipeline for a reseau camera (pixel system throughout, film mm for the certificate):
+
+1. overview: the scan reduced by an integer factor chosen so that a cross line is about one
+   overview pixel wide (built blockwise, no full float copy);
+2. coarse search: NCC with a cross template rendered from the certificate at the overview's
+   scale; peaks of both signs;
+3. grid fit (:mod:`softplot.marks.grid`): lattice scale/rotation/phase, row/col assignment,
+   projective film -> pixel model by RANSAC, for each polarity; the better one is the scan's
+   polarity (unless given). With a rotation above 2 degrees the NCC is repeated with a rotated
+   template;
+4. prediction of every cross (model + interpolated residuals of its neighbours), a local search
+   in the NCC map, and least-squares template matching at full resolution
+   (:mod:`softplot.marks.lsm`) with robust weights;
+5. acceptance tests (contrast, correlation, shape, support of each arm): a mark that fails is
+   "missing"; crosses whose extent leaves the scan are "missing" (cut) without a fit;
+6. the global projective model refitted to the measured crosses; a cross whose residual
+   departs from its neighbours' (a smooth film deformation moves neighbours alike) by more than
+   a robust threshold is "rejected".
+
+Fiducial cameras go through :mod:`softplot.marks.fiducial`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from softplot.camera import Camera, load_camera
+from softplot.errors import SoftplotError
+from softplot.marks import coarse, grid
+from softplot.marks.measure import AcceptRules, measure
+from softplot.marks.result import Detection
+from softplot.marks.template import cross_shape
+
+__all__ = ["detect", "as_scan", "DetectionError"]
+
+MM_PER_INCH = 25.4
+
+
+class DetectionError(SoftplotError):
+    """The marks of the certificate cannot be found on the scan (message: expected vs found)."""
+
+
+def as_scan(scan, dpi: float | None = None):
+    """A :class:`softplot.io.Scan` from a Scan, a path or an array."""
+    from softplot import io
+
+    if isinstance(scan, io.Scan):
+        return scan
+    if isinstance(scan, (str, Path)):
+        return io.load_scan(scan)
+    return io.Scan.from_array(np.asarray(scan), dpi=dpi)
+
+
+def _polarity_name(sign: int) -> str:
+    return "negative" if sign > 0 else "positive"
+
+
+def _blank_check(ov: np.ndarray, what: str) -> None:
+    if ov.size == 0:
+        raise DetectionError(f"{what}: empty image")
+    lo, hi = np.percentile(ov[:: max(1, ov.shape[0] // 256), :: max(1, ov.shape[1] // 256)],
+                           [1, 99])
+    if hi - lo < 2e-3:
+        raise DetectionError(
+            f"{what}: blank image (grey range {hi - lo:.4f}); expected reseau crosses or fiducial "
+            "marks with some contrast")
+
+
+def _idw(film_all, film_known, val_known, k=4):
+    """Inverse-distance interpolation of residual vectors at film points (mm)."""
+    if len(film_known) == 0:
+        return np.zeros((len(film_all), 2))
+    k = min(k, len(film_known))
+    d, j = cKDTree(film_known).query(film_all, k=k)
+    d = d.reshape(len(film_all), k)
+    j = j.reshape(len(film_all), k)
+    w = 1.0 / np.maximum(d, 1e-6) ** 2
+    return (val_known[j] * w[..., None]).sum(1) / w.sum(1)[:, None]
+
+
+def _search_map(R, h, sign, xy_ov, radius):
+    """Best NCC position (overview px) of ``sign`` within ``radius`` of each point."""
+    n = len(xy_ov)
+    out = np.full((n, 2), np.nan)
+    val = np.full(n, -np.inf)
+    if R.size == 0:
+        return out, val
+    r = max(int(np.ceil(radius)), 1)
+    ar = np.arange(-r, r + 1)
+    ci = np.round(xy_ov[:, 0] - h).astype(int)
+    cj = np.round(xy_ov[:, 1] - h).astype(int)
+    ii = cj[:, None] + ar[None, :]
+    jj = ci[:, None] + ar[None, :]
+    Hh, W = R.shape
+    vi = (ii >= 0) & (ii < Hh)
+    vj = (jj >= 0) & (jj < W)
+    sub = sign * R[np.clip(ii, 0, Hh - 1)[:, :, None], np.clip(jj, 0, W - 1)[:, None, :]]
+    disk = (ar[:, None] ** 2 + ar[None, :] ** 2) <= r * r
+    ok = vi[:, :, None] & vj[:, None, :] & disk[None]
+    sub = np.where(ok, sub, -np.inf)
+    flat = sub.reshape(n, -1).argmax(1)
+    a, b = np.unravel_index(flat, sub.shape[1:])
+    val = sub[np.arange(n), a, b]
+    # parabola refinement
+    def nb(da, db):
+        aa = np.clip(a + da, 0, 2 * r)
+        bb = np.clip(b + db, 0, 2 * r)
+        v = sub[np.arange(n), aa, bb]
+        return np.where(np.isfinite(v), v, val)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dxd = nb(0, -1) - 2 * val + nb(0, 1)
+        dyd = nb(-1, 0) - 2 * val + nb(1, 0)
+        dx = np.where(dxd < 0, 0.5 * (nb(0, -1) - nb(0, 1)) / dxd, 0.0)
+        dy = np.where(dyd < 0, 0.5 * (nb(-1, 0) - nb(1, 0)) / dyd, 0.0)
+    dx = np.clip(np.nan_to_num(dx), -0.5, 0.5)
+    dy = np.clip(np.nan_to_num(dy), -0.5, 0.5)
+    good = np.isfinite(val)
+    out[good, 0] = (jj[np.arange(n), b] + dx + h)[good]
+    out[good, 1] = (ii[np.arange(n), a] + dy + h)[good]
+    return out, val
+
+
+def _reseau_factor(line_px: float, npix: int) -> int:
+    f = max(1, int(round(line_px / 1.1)))
+    # keep the overview to a few megapixels on very large scans
+    while npix / (f * f) > 6e6:
+        f += 1
+    return f
+
+
+def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
+    """NCC on the overview and grid fit for each admissible polarity."""
+    res = camera.reseau
+    shape_ov = cross_shape(camera, px_per_mm / f)
+    s_ov = float(np.hypot(s_full / f, 0.5))
+    arm_half = min(0.5 * shape_ov.length, max(6.0, 3.0 * shape_ov.width))
+    R, h = coarse.ncc_map(ov, shape_ov, s_ov, arm_half=arm_half)
+    std = coarse.local_std(ov, max(int(shape_ov.width + 2), 2))
+    noise_floor = 2e-3
+    pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
+    signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
+    best = None
+    for sg in signs:
+        pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.35 * pitch_ov), threshold=0.2,
+                               max_peaks=3 * res.count + 100, sign=sg, contrast=std,
+                               min_contrast=noise_floor)
+        if len(pk) < 4:
+            continue
+        xy = coarse.ov_to_full(pk.xy, f)
+        g = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height), px_per_mm=px_per_mm,
+                          rotate_deg=rotate_deg, margin_px=0.5 * shape_ov.length * f)
+        if g is None:
+            continue
+        if best is None or g.score > best[0].score:
+            best = (g, sg, R, h, pk)
+    return best
+
+
+def detect(
+    scan,
+    camera: Camera | str,
+    *,
+    dpi: float | None = None,
+    polarity: str = "auto",
+    rotate: float = 0.0,
+    blur_px: float = 1.0,
+    rules: AcceptRules | None = None,
+) -> Detection:
+    """Detect and measure the reseau crosses and fiducial marks of a scan.
+
+    Parameters
+    ----------
+    scan : Scan, path or ndarray
+        The scan (pixel system).
+    camera : Camera or str
+        Certificate (built-in name, TOML path or Camera).
+    dpi : float, optional
+        Scan resolution; default the file's, else estimated from the image.
+    polarity : {"auto", "positive", "negative"}
+        "positive": dark marks on a bright background (a print); "negative": bright marks
+        (a film negative). "auto" decides from the image.
+    rotate : float
+        Coarse rotation of the photo in the scan (0, 90, 180, 270 degrees, counter-clockwise
+        on screen, as the synthetic scanner's ``rotation_deg``). Residual rotations of
+        +-20 degrees around it are found automatically.
+    blur_px : float
+        Expected scanner blur sigma (px), only the LSM starting value.
+    rules : AcceptRules, optional
+        Acceptance thresholds.
+
+    Returns
+    -------
+    Detection
+    """
+    t0 = time.perf_counter()
+    cam = load_camera(camera)
+    sc = as_scan(scan, dpi=dpi)
+    if polarity not in ("auto", "positive", "negative"):
+        raise SoftplotError(f"polarity must be auto, positive or negative, got {polarity!r}")
+    name = sc.path.name if sc.path is not None else "<array>"
+    if cam.reseau is None:
+        from softplot.marks.fiducial import detect_fiducials
+
+        return detect_fiducials(sc, cam, name=name, dpi=dpi, polarity=polarity, rotate=rotate,
+                                blur_px=blur_px, rules=rules)
+    return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0)
+
+
+def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> Detection:
+    res = cam.reseau
+    warnings: list[str] = []
+    timings: dict = {}
+    rotate_pix = -float(rotate)  # pixel-system angle of film +x (clockwise on screen)
+    dpi_source = "given" if dpi is not None else ("file" if sc.dpi else "estimated")
+    dpi = dpi if dpi is not None else sc.dpi
+    span_mm = ((res.cols - 1) * res.pitch_x + res.arm_length_mm,
+               (res.rows - 1) * res.pitch_y + res.arm_length_mm)
+    npix = sc.width * sc.height
+
+    if dpi is None:
+        # the scan holds the reseau: a first guess from its size, refined from the spacing
+        guess = 25.4 * min(sc.width / cam.format_mm[0], sc.height / cam.format_mm[1])
+        ppm = guess / MM_PER_INCH
+        f = _reseau_factor(res.line_width_mm * ppm, npix)
+        ov = coarse.overview(sc, f)
+        _blank_check(ov, name)
+        # estimate from peak spacing with a template at the guessed scale
+        shape_ov = cross_shape(cam, ppm / f)
+        R, h = coarse.ncc_map(ov, shape_ov, 0.7, arm_half=min(0.5 * shape_ov.length, 6.0))
+        pk = coarse.find_peaks(R, h, min_dist=3.0, threshold=0.25,
+                               max_peaks=3 * res.count + 100)
+        sp = None
+        for sg in (1, -1):
+            q = pk.select(pk.sign == sg)
+            s_ = grid.estimate_spacing(coarse.ov_to_full(q.xy, f))
+            if s_ is not None and (sp is None or len(q) > sp[1]):
+                sp = (s_, len(q))
+        if sp is None:
+            raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
+                                 f"found (expected {res.rows}x{res.cols} crosses at "
+                                 f"{res.pitch_x} mm); give --dpi")
+        dpi = sp[0] / min(res.pitch_x, res.pitch_y) * MM_PER_INCH
+        del ov, R
+    ppm = dpi / MM_PER_INCH
+    need = (span_mm[0] * ppm * 0.5, span_mm[1] * ppm * 0.5)
+    if sc.width < need[0] or sc.height < need[1]:
+        raise DetectionError(
+            f"{name}: scan of {sc.width}x{sc.height} px is much smaller than the "
+            f"{cam.name} reseau at {dpi:.0f} dpi (expected about "
+            f"{span_mm[0] * ppm:.0f}x{span_mm[1] * ppm:.0f} px or more)")
+    shape = cross_shape(cam, ppm)
+    f = _reseau_factor(shape.width, npix)
+    ov = coarse.overview(sc, f)
+    _blank_check(ov, name)
+    timings["overview"] = time.perf_counter() - t0
+    best = _coarse_grid(sc, ov, f, cam, ppm, polarity, rotate_pix, blur_px)
+    if best is None:
+        raise DetectionError(
+            f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of crosses at "
+            f"{res.pitch_x}x{res.pitch_y} mm ({res.pitch_x * ppm:.0f} px at {dpi:.0f} dpi), "
+            "found no regular pattern of cross-like marks")
+    g, sign, R, h, pk = best
+    if abs(g.rotation_deg - rotate_pix) > 2.0:
+        # repeat the correlation with the template turned like the grid
+        J = grid.h_jacobian(g.H, np.zeros((1, 2)))[0] / ppm
+        A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
+        shape_ov = cross_shape(cam, ppm / f)
+        R2, h2 = coarse.ncc_map(ov, shape_ov, float(np.hypot(blur_px / f, 0.5)), A=A_ov,
+                                arm_half=min(0.5 * shape_ov.length, 10.0))
+        pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, 0.35 * res.pitch_x * ppm / f),
+                                threshold=0.2, max_peaks=3 * res.count + 100, sign=sign)
+        g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
+                           (sc.width, sc.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
+                           margin_px=0.5 * shape.length, max_rotation_deg=3.0)
+        if g2 is not None and len(g2.node) >= len(g.node):
+            g, R, h, pk = g2, R2, h2, pk2
+    timings["grid"] = time.perf_counter() - t0
+    n_assigned = len(g.node)
+    if n_assigned < max(4, 0.2 * res.count):
+        raise DetectionError(
+            f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
+            f"{res.pitch_x}x{res.pitch_y} mm, found only {n_assigned} on a lattice")
+
+    # --- prediction of every cross ---------------------------------------------------------
+    film = res.film()
+    N = res.count
+    pred = grid.apply_h(g.H, film)
+    cand_xy = coarse.ov_to_full(pk.xy[g.index], f)
+    resid = cand_xy - grid.apply_h(g.H, film[g.node])
+    pred = pred + _idw(film, film[g.node], resid)
+    # local search in the NCC map around each prediction
+    spread = float(np.sqrt(np.mean(np.sum(resid**2, 1)))) if len(resid) else 3.0
+    radius_ov = max(2.0, (2.0 * spread + 2.0) / f)
+    found_ov, val = _search_map(R, h, sign, coarse.full_to_ov(pred, f), radius_ov)
+    c0 = np.where(np.isfinite(found_ov), coarse.ov_to_full(found_ov, f), pred)
+    # affine of every cross: pixel -> mark frame (u along film x, v along film -y, nominal px)
+    Jh = grid.h_jacobian(g.H, film)  # d pixel / d film mm
+    A0 = np.linalg.inv(Jh @ np.diag([1.0 / ppm, -1.0 / ppm]))
+
+    # crosses whose extent leaves the scan are cut: never fitted
+    ext = 0.5 * shape.length + 0.5 * shape.width
+    tips = np.stack([pred + ext * Jh[:, :, 0] / ppm * sgn for sgn in (1, -1)]
+                    + [pred + ext * Jh[:, :, 1] / ppm * sgn for sgn in (1, -1)], 1)
+    tips = np.concatenate([tips, pred[:, None, :] + 0.0], 1)
+    inside = ((tips[..., 0] >= 0.5) & (tips[..., 0] <= sc.width - 1.5)
+              & (tips[..., 1] >= 0.5) & (tips[..., 1] <= sc.height - 1.5)).all(1)
+    on_img = ((pred[:, 0] >= 0) & (pred[:, 0] <= sc.width - 1)
+              & (pred[:, 1] >= 0) & (pred[:, 1] <= sc.height - 1))
+    timings["predict"] = time.perf_counter() - t0
+
+    s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
+    init_err = max(0.75, 0.5 * f + 0.25)
+    idx = np.where(inside)[0]
+    fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules)
+    timings["lsm"] = time.perf_counter() - t0
+
+    xy = np.full((N, 2), np.nan)
+    cov = np.full((N, 2, 2), np.nan)
+    score = np.full(N, np.nan)
+    cnr = np.full(N, np.nan)
+    status = ["missing"] * N
+    reason = ["outside the scan" if not on_img[i] else "cut by the scan edge" for i in range(N)]
+    for k, i in enumerate(idx):
+        score[i] = fine.score[k]
+        cnr[i] = fine.cnr[k]
+        if fine.ok[k]:
+            xy[i] = fine.xy[k]
+            cov[i] = fine.cov[k]
+            status[i] = "measured"
+            reason[i] = ""
+        else:
+            reason[i] = fine.reason[k] or "not found"
+
+    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, shape.width)
+    rows_cols = res.row_col()
+    sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
+    n_meas = sum(s == "measured" for s in status)
+    if n_meas < N:
+        warnings.append(f"{N - n_meas} of {N} crosses not measured")
+    timings["total"] = time.perf_counter() - t0
+    return Detection(
+        image=name,
+        camera=cam.name,
+        width=sc.width,
+        height=sc.height,
+        dpi=float(dpi),
+        polarity=_polarity_name(sign),
+        kind=["reseau"] * N,
+        name=res.names(),
+        row=rows_cols[:, 0].astype(int),
+        col=rows_cols[:, 1].astype(int),
+        film=film,
+        xy=xy,
+        sigma=np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])),
+        sigma_xy=sig_xy,
+        score=score,
+        cnr=cnr,
+        status=status,
+        reason=reason,
+        transform=_transform_json(Hm, rms, n_meas),
+        rms_px=rms,
+        residual=residual,
+        warnings=warnings,
+        dpi_source=dpi_source,
+        timings=timings,
+    )
+
+
+def _transform_json(Hm, rms, n) -> dict:
+    return {
+        "kind": "projective",
+        "from": "film_mm",
+        "to": "pixel",
+        "matrix": [[float(v) for v in row] for row in Hm],
+        "rms_px": float(rms),
+        "n": int(n),
+        "formula": "[x y w]^T = H [X Y 1]^T; pixel = (x/w, y/w); X, Y film mm",
+    }
+
+
+def _reject_outliers(film, xy, status, reason, H0, line_px):
+    """Refit the global model to the measured marks; flag marks that disagree with it.
+
+    A smooth film deformation moves neighbouring crosses alike, so each residual is compared
+    with the inverse-distance interpolation of its neighbours' residuals (leave-one-out); a
+    departure beyond ``max(5 * robust sigma, 0.5 * line width)`` is an outlier. Repeated until
+    nothing changes. Modifies ``status`` and ``reason`` in place.
+    """
+    Hm = H0
+    for _ in range(5):
+        m = np.array([s == "measured" for s in status])
+        if m.sum() < 4:
+            break
+        Hm = grid.projective_fit(film[m], xy[m])
+        r = xy - grid.apply_h(Hm, film)
+        idx = np.where(m)[0]
+        if len(idx) < 6:
+            break
+        k = min(5, len(idx) - 1)
+        d, j = cKDTree(film[idx]).query(film[idx], k=k + 1)
+        d, j = d[:, 1:], j[:, 1:]
+        w = 1.0 / np.maximum(d, 1e-6) ** 2
+        loo = (r[idx][j] * w[..., None]).sum(1) / w.sum(1)[:, None]
+        dev = np.hypot(*(r[idx] - loo).T)
+        mad = 1.4826 * np.median(dev)
+        thr = max(5.0 * mad, 0.5 * line_px, 0.5)
+        bad = dev > thr
+        if not bad.any():
+            break
+        # reject only the worst one per round (an outlier also spoils its neighbours' values)
+        worst = idx[np.argmax(np.where(bad, dev, -1))]
+        status[worst] = "rejected"
+        reason[worst] = "outlier against the global model and its neighbours"
+    m = np.array([s == "measured" for s in status])
+    if m.sum() >= 4:
+        Hm = grid.projective_fit(film[m], xy[m])
+    r = xy - grid.apply_h(Hm, film)
+    residual = np.where(m[:, None], r, np.nan)
+    rms = float(np.sqrt(np.mean(np.sum(r[m] ** 2, 1)))) if m.any() else float("nan")
+    return Hm, residual, rms

@@ -1,0 +1,371 @@
+"""Robust reseau-grid fit: lattice from candidate peaks, row/col assignment, projective model.
+
+From NCC candidate peaks (pixel system) that contain the reseau crosses and any number of
+false peaks (scene features), this module finds
+
+1. the lattice scale (px per mm; estimated from the nearest-neighbour spacing when the dpi is
+   unknown) and rotation (any angle within +-45 degrees of the ``rotate`` hint, i.e. the
+   quarter turn the user states) from the difference vectors between neighbouring peaks;
+2. the lattice phase by voting (every strong peak proposes itself as a lattice node; the one
+   with most peaks on its lattice wins) and an affine lattice fitted to the peaks within a
+   quarter of a pitch of a node (scale, rotation, anisotropy, offset);
+3. the absolute row/column numbers: the shift of the relative indices that puts most peak
+   score on the certificate's grid while predicting no unseen cross inside the image;
+4. a projective film-mm -> pixel model by RANSAC (OpenCV ``findHomography``) over the assigned
+   peaks, refined by least squares on its inliers.
+
+Film coordinates (mm): x right, y up, reseau row 0 on top. Pixel coordinates: x right, y down.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from softplot.camera import Reseau
+
+__all__ = ["GridFit", "fit_grid", "projective_fit", "apply_h", "h_jacobian",
+           "estimate_spacing"]
+
+
+def apply_h(H: np.ndarray, xy) -> np.ndarray:
+    """Apply a 3x3 projective transform to points (N, 2)."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    w = H[2, 0] * xy[:, 0] + H[2, 1] * xy[:, 1] + H[2, 2]
+    x = (H[0, 0] * xy[:, 0] + H[0, 1] * xy[:, 1] + H[0, 2]) / w
+    y = (H[1, 0] * xy[:, 0] + H[1, 1] * xy[:, 1] + H[1, 2]) / w
+    return np.column_stack([x, y])
+
+
+def h_jacobian(H: np.ndarray, xy) -> np.ndarray:
+    """Jacobian d(output)/d(input) of a projective transform at points (N, 2): (N, 2, 2)."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    w = H[2, 0] * xy[:, 0] + H[2, 1] * xy[:, 1] + H[2, 2]
+    out = apply_h(H, xy)
+    J = np.empty((len(xy), 2, 2))
+    for i in range(2):
+        for j in range(2):
+            J[:, i, j] = (H[i, j] - out[:, i] * H[2, j]) / w
+    return J
+
+
+def projective_fit(src, dst, weights=None) -> np.ndarray:
+    """Least-squares projective transform src -> dst (normalised DLT, then Gauss-Newton).
+
+    Falls back to an affine transform for fewer than 5 points (3 or 4 points).
+    """
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    n = len(src)
+    if n < 5:
+        A = _affine_fit(src, dst)
+        return np.vstack([A, [0.0, 0.0, 1.0]])
+    Hm = _dlt(src, dst)
+    if Hm is None:
+        return np.vstack([_affine_fit(src, dst), [0.0, 0.0, 1.0]])
+    wts = np.ones(n) if weights is None else np.asarray(weights, float)
+    # Gauss-Newton on the 8 parameters (geometric error in dst units)
+    h = Hm.ravel()[:8].copy()
+    for _ in range(5):
+        Hc = np.append(h, 1.0).reshape(3, 3)
+        x, y = src[:, 0], src[:, 1]
+        w = Hc[2, 0] * x + Hc[2, 1] * y + 1.0
+        px = (Hc[0, 0] * x + Hc[0, 1] * y + Hc[0, 2]) / w
+        py = (Hc[1, 0] * x + Hc[1, 1] * y + Hc[1, 2]) / w
+        r = np.concatenate([dst[:, 0] - px, dst[:, 1] - py])
+        z = np.zeros(n)
+        o = np.ones(n)
+        Jx = np.column_stack([x / w, y / w, o / w, z, z, z, -px * x / w, -px * y / w])
+        Jy = np.column_stack([z, z, z, x / w, y / w, o / w, -py * x / w, -py * y / w])
+        J = np.vstack([Jx, Jy])
+        W = np.concatenate([wts, wts])
+        dh = np.linalg.lstsq(J * W[:, None] ** 0.5, r * W**0.5, rcond=None)[0]
+        h += dh
+        if np.abs(dh).max() < 1e-12:
+            break
+    return np.append(h, 1.0).reshape(3, 3)
+
+
+def _normaliser(p):
+    m = p.mean(0)
+    d = np.sqrt(((p - m) ** 2).sum(1).mean()) or 1.0
+    k = np.sqrt(2.0) / d
+    return np.array([[k, 0.0, -k * m[0]], [0.0, k, -k * m[1]], [0.0, 0.0, 1.0]])
+
+
+def _dlt(src, dst) -> np.ndarray | None:
+    """Normalised direct linear transform (Hartley) src -> dst, H[2, 2] = 1."""
+    Ts, Td = _normaliser(src), _normaliser(dst)
+    s = src @ Ts[:2, :2].T + Ts[:2, 2]
+    d = dst @ Td[:2, :2].T + Td[:2, 2]
+    n = len(s)
+    A = np.zeros((2 * n, 9))
+    A[0::2, 0:2] = s
+    A[0::2, 2] = 1.0
+    A[0::2, 6:8] = -d[:, 0:1] * s
+    A[0::2, 8] = -d[:, 0]
+    A[1::2, 3:5] = s
+    A[1::2, 5] = 1.0
+    A[1::2, 6:8] = -d[:, 1:2] * s
+    A[1::2, 8] = -d[:, 1]
+    h = np.linalg.svd(A, full_matrices=False)[2][-1]
+    H = np.linalg.inv(Td) @ h.reshape(3, 3) @ Ts
+    if not np.isfinite(H).all() or abs(H[2, 2]) < 1e-15:
+        return None
+    return H / H[2, 2]
+
+
+def _affine_fit(src, dst) -> np.ndarray:
+    M = np.column_stack([src, np.ones(len(src))])
+    sol = np.linalg.lstsq(M, dst, rcond=None)[0]
+    return sol.T
+
+
+def estimate_spacing(xy: np.ndarray) -> float | None:
+    """Most frequent nearest-neighbour distance (px) among points: the lattice pitch."""
+    if len(xy) < 4:
+        return None
+    d, _ = cKDTree(xy).query(xy, k=2)
+    nn = np.sort(d[:, 1])
+    lo = np.searchsorted(nn, nn * 0.95)
+    hi = np.searchsorted(nn, nn * 1.05, side="right")
+    i = int(np.argmax(hi - lo))
+    if hi[i] - lo[i] < 3:
+        return None
+    return float(np.median(nn[lo[i] : hi[i]]))
+
+
+@dataclass
+class GridFit:
+    """Result of :func:`fit_grid`.
+
+    Attributes
+    ----------
+    H : (3, 3) ndarray
+        Projective film mm -> pixel.
+    index : (K,) int
+        Candidate peaks assigned to crosses.
+    node : (K,) int
+        Their cross index (row-major, as :meth:`Reseau.film`).
+    px_per_mm : float
+        Mean scale.
+    rotation_deg : float
+        Rotation of the film x axis in the pixel system (degrees, pixel x towards pixel y).
+    rms : float
+        RMS residual (px) of the assigned peaks against ``H``.
+    score : float
+        Sum of the assigned peaks' scores.
+    """
+
+    H: np.ndarray
+    index: np.ndarray
+    node: np.ndarray
+    px_per_mm: float
+    rotation_deg: float
+    rms: float
+    score: float
+
+
+def _fold(a: np.ndarray, period: float) -> np.ndarray:
+    return (a + 0.5 * period) % period - 0.5 * period
+
+
+def fit_grid(
+    xy: np.ndarray,
+    score: np.ndarray,
+    reseau: Reseau,
+    image_size: tuple[int, int],
+    px_per_mm: float | None = None,
+    rotate_deg: float = 0.0,
+    margin_px: float = 0.0,
+    max_rotation_deg: float = 20.0,
+) -> GridFit | None:
+    """Fit the reseau lattice to candidate peaks and assign rows and columns.
+
+    Parameters
+    ----------
+    xy : (M, 2) float
+        Candidate positions (pixel system).
+    score : (M,) float
+        Their NCC scores (higher is better).
+    reseau : Reseau
+        The certificate's grid.
+    image_size : (width, height)
+        Scan size (px).
+    px_per_mm : float, optional
+        Nominal scale; estimated from the peaks' spacing when None.
+    rotate_deg : float
+        Known coarse rotation of the scan (0, 90, 180, 270): angle of film +x in the pixel
+        system, measured from pixel +x towards pixel +y.
+    margin_px : float
+        A cross must lie this far inside the image to count as "should have been seen".
+    max_rotation_deg : float
+        Largest residual rotation accepted.
+
+    Returns
+    -------
+    GridFit or None
+        None when no lattice is found.
+    """
+    xy = np.asarray(xy, float)
+    score = np.asarray(score, float)
+    M = len(xy)
+    if M < 4:
+        return None
+    px, py = reseau.pitch_x, reseau.pitch_y
+    if px_per_mm is None:
+        sp = estimate_spacing(xy)
+        if sp is None:
+            return None
+        px_per_mm = sp / min(px, py)
+    lx, ly = px * px_per_mm, py * px_per_mm
+
+    # rotation from neighbour difference vectors
+    k = min(9, M)
+    dist, nb = cKDTree(xy).query(xy, k=k)
+    d = (xy[nb[:, 1:]] - xy[:, None, :]).reshape(-1, 2)
+    ln = np.hypot(d[:, 0], d[:, 1])
+    ang = np.degrees(np.arctan2(d[:, 1], d[:, 0])) - rotate_deg
+    square = abs(lx - ly) < 0.08 * min(lx, ly)
+    angs = []
+    for L, extra in ((lx, 0.0), (ly, 90.0)):
+        sel = np.abs(ln - L) < 0.12 * L
+        a = ang[sel] + extra
+        angs.append(_fold(a, 90.0 if square else 180.0))
+    a = np.concatenate(angs)
+    a = a[np.abs(a) <= max_rotation_deg]
+    if a.size < 3:
+        return None
+    # mode of the folded angles, then mean around it
+    hist, edges = np.histogram(a, bins=int(4 * max_rotation_deg) + 1,
+                               range=(-max_rotation_deg - 0.25, max_rotation_deg + 0.25))
+    j = int(np.argmax(hist))
+    centre = 0.5 * (edges[j] + edges[j + 1])
+    near = a[np.abs(a - centre) < 1.0]
+    theta = np.radians(rotate_deg + (np.median(near) if near.size else centre))
+
+    c, s = np.cos(theta), np.sin(theta)
+    # lattice basis in pixels: +1 column, +1 row (row goes down the film = film -y)
+    B = np.array([[lx * c, -ly * s], [lx * s, ly * c]])
+    # film +y -> pixel direction (s, -c): +1 row = film -y -> (-s, c) * ly
+    Binv = np.linalg.inv(B)
+
+    # phase by voting among the strongest peaks
+    refs = np.argsort(-score)[: min(60, M)]
+    f_all = (xy[None, :, :] - xy[refs][:, None, :]) @ Binv.T  # (R, M, 2)
+    frac = np.abs(f_all - np.round(f_all))
+    votes = ((frac < 0.15).all(-1) * score[None, :]).sum(1)
+    ref = refs[int(np.argmax(votes))]
+
+    # affine lattice refinement: p = p0 + B @ (i, j)
+    p0 = xy[ref].copy()
+    Bc = B.copy()
+    inl = None
+    for tol in (0.2, 0.2, 0.15):
+        f = (xy - p0) @ np.linalg.inv(Bc).T
+        idx = np.round(f)
+        inl = (np.abs(f - idx) < tol).all(1)
+        if inl.sum() < 3:
+            return None
+        Mx = np.column_stack([np.ones(inl.sum()), idx[inl]])
+        sol = np.linalg.lstsq(Mx, xy[inl], rcond=None)[0]
+        p0 = sol[0]
+        Bc = sol[1:].T
+    f = (xy - p0) @ np.linalg.inv(Bc).T
+    idx = np.round(f).astype(int)
+    inl = (np.abs(f - idx) < 0.2).all(1)
+    # one peak per lattice node: the best-scoring one
+    cand = np.where(inl)[0]
+    order = cand[np.argsort(-score[cand])]
+    seen: set = set()
+    keep = []
+    for i in order:
+        key = (idx[i, 0], idx[i, 1])
+        if key not in seen:
+            seen.add(key)
+            keep.append(i)
+    cand = np.array(sorted(keep), int)
+    ci, ri = idx[cand, 0], idx[cand, 1]
+
+    # absolute row/col: choose the index shift that fits the certificate's grid best.
+    # Work on a map of relative lattice indices covering every admissible shift: the score
+    # of a shift is the peak score on the grid minus the score off it, minus a penalty for
+    # every cross of the grid that would lie inside the image without a peak; box sums over
+    # integral images give all shifts at once.
+    W, Hh = image_size
+    rows, cols = reseau.rows, reseau.cols
+    sc = score[cand]
+    mean_sc = float(sc.mean()) if sc.size else 1.0
+    i_lo, i_hi = int(ci.min()) - cols + 1, int(ci.max()) + cols - 1
+    j_lo, j_hi = int(ri.min()) - rows + 1, int(ri.max()) + rows - 1
+    ni, nj = i_hi - i_lo + 1, j_hi - j_lo + 1
+    S = np.zeros((nj, ni))
+    np.add.at(S, (ri - j_lo, ci - i_lo), sc)
+    seen_map = S > 0
+    jj, ii = np.mgrid[j_lo : j_hi + 1, i_lo : i_hi + 1]
+    pos = p0 + np.column_stack([ii.ravel(), jj.ravel()]) @ Bc.T
+    inside = ((pos[:, 0] >= margin_px) & (pos[:, 0] <= W - 1 - margin_px)
+              & (pos[:, 1] >= margin_px) & (pos[:, 1] <= Hh - 1 - margin_px)).reshape(nj, ni)
+    U = (inside & ~seen_map).astype(float)
+
+    def box_sums(Mp):
+        c = np.zeros((nj + 1, ni + 1))
+        c[1:, 1:] = Mp.cumsum(0).cumsum(1)
+        # box of rows x cols whose top-left relative index is (a, b)
+        a = np.arange(nj - rows + 1)[:, None]
+        b = np.arange(ni - cols + 1)[None, :]
+        return c[a + rows, b + cols] - c[a, b + cols] - c[a + rows, b] + c[a, b]
+
+    on = box_sums(S)
+    unseen = box_sums(U)
+    total_sc = sc.sum()
+    # grid centre of each shift vs image centre (tie-breaker)
+    a = np.arange(nj - rows + 1)[:, None] + j_lo + (rows - 1) / 2.0
+    b = np.arange(ni - cols + 1)[None, :] + i_lo + (cols - 1) / 2.0
+    cxy_x = p0[0] + Bc[0, 0] * b + Bc[0, 1] * a
+    cxy_y = p0[1] + Bc[1, 0] * b + Bc[1, 1] * a
+    off = np.hypot(cxy_x - (W - 1) / 2, cxy_y - (Hh - 1) / 2)
+    total = on - (total_sc - on) - 0.5 * mean_sc * unseen - 1e-6 * off
+    ja, ib = np.unravel_index(int(np.argmax(total)), total.shape)
+    dr = -(ja + j_lo)  # relative index of row 0 is ja + j_lo
+    dc = -(ib + i_lo)
+    col, row = ci + dc, ri + dr
+    ins = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
+    cand = cand[ins]
+    node = row[ins] * cols + col[ins]
+    if len(cand) < 3:
+        return None
+
+    film = reseau.film()[node]
+    pix = xy[cand]
+    # RANSAC projective; threshold tolerant of film deformation (~0.15 mm)
+    thr = max(3.0, 0.15 * px_per_mm)
+    keep = np.ones(len(cand), bool)
+    if len(cand) >= 8:
+        Hm, mask = cv2.findHomography(film, pix, cv2.RANSAC, ransacReprojThreshold=thr,
+                                      maxIters=2000, confidence=0.999)
+        if Hm is not None and mask is not None and mask.sum() >= 5:
+            keep = mask.ravel().astype(bool)
+    Hm = projective_fit(film[keep], pix[keep])
+    res = apply_h(Hm, film) - pix
+    rr = np.hypot(res[:, 0], res[:, 1])
+    keep = rr < max(thr, 4.0 * np.sqrt(np.mean(rr[keep] ** 2)) if keep.any() else thr)
+    if keep.sum() >= 3:
+        Hm = projective_fit(film[keep], pix[keep])
+    cand, node = cand[keep], node[keep]
+    res = apply_h(Hm, reseau.film()[node]) - xy[cand]
+    J = h_jacobian(Hm, np.zeros((1, 2)))[0]
+    scale = float(np.sqrt(abs(np.linalg.det(J))))
+    rot = float(np.degrees(np.arctan2(J[1, 0], J[0, 0])))
+    return GridFit(
+        H=Hm,
+        index=cand,
+        node=node,
+        px_per_mm=scale,
+        rotation_deg=rot,
+        rms=float(np.sqrt(np.mean(np.sum(res**2, 1)))) if len(res) else 0.0,
+        score=float(score[cand].sum()),
+    )

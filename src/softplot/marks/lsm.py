@@ -1,0 +1,395 @@
+"""Least-squares template matching (LSM) of analytic marks, batched over many marks.
+
+Model of the grey values ``g`` of a mark's pixels ``p = (x, y)`` (pixel system)::
+
+    g(p) = a + b * T(A @ (p - c); s) + gx * (x - x_r) + gy * (y - y_r)
+
+with ``T`` the analytic blurred mark of :mod:`softplot.marks.template` (1 on the mark, 0 off
+it), ``c`` its centre (px), ``A`` the 2x2 pixel -> mark-frame affine (rotation, scale,
+anisotropy, shear), ``s`` the edge blur (px), ``a``, ``b`` the radiometric offset and gain (the
+sign of ``b`` is the polarity: negative for dark marks) and ``gx``, ``gy`` a background tilt
+(reference ``(x_r, y_r)``: the initial centre). 11 parameters per mark, solved by Gauss-Newton
+for all marks at once (arrays of shape (N, P) for N marks of up to P pixels each).
+
+Robustness: the first iterations use a wide blur (``s`` fixed large) to widen the capture range;
+then all parameters are free and pixel weights follow Tukey's biweight on the residuals scaled by
+their MAD, so that dust or a scratch over one arm gets weight 0 and does not pull the centre.
+The covariance of the centre is ``sigma0**2 * N^-1`` of the final weighted normal equations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softplot.marks.template import MarkShape, aperture
+
+__all__ = ["LSMResult", "lsm", "support_mask", "PARAMS"]
+
+#: parameter order of the LSM model
+PARAMS = ("cx", "cy", "a00", "a01", "a10", "a11", "s", "a", "b", "gx", "gy")
+_NP = len(PARAMS)
+
+
+@dataclass
+class LSMResult:
+    """Batched LSM results; arrays over N marks, positions in the pixel system.
+
+    Attributes
+    ----------
+    centre : (N, 2) float
+        Estimated mark centres (px).
+    A : (N, 2, 2) float
+        Pixel -> mark-frame affine.
+    s : (N,) float
+        Edge blur (px).
+    offset, gain : (N,) float
+        Radiometric offset ``a`` and gain ``b`` (grey units; ``b < 0`` for dark marks).
+    cov : (N, 2, 2) float
+        Covariance of the centre (px^2).
+    sigma0 : (N,) float
+        A-posteriori standard deviation of unit weight (grey units).
+    noise : (N,) float
+        Robust (MAD) standard deviation of the residuals (grey units).
+    score : (N,) float
+        Correlation of data and fitted template over the mark's pixels (-1..1; sign relative to
+        the fitted gain, i.e. positive when the mark looks like the model).
+    support : (N, K) float
+        Fraction of well-fitting pixels (weight > 0.5) in each of K parts of the mark (the 4
+        arms of a cross; 1 part for dots and circles).
+    converged : (N,) bool
+    iterations : int
+    npix : (N,) int
+        Pixels used.
+    """
+
+    centre: np.ndarray
+    A: np.ndarray
+    s: np.ndarray
+    offset: np.ndarray
+    gain: np.ndarray
+    cov: np.ndarray
+    sigma0: np.ndarray
+    noise: np.ndarray
+    score: np.ndarray
+    support: np.ndarray
+    converged: np.ndarray
+    iterations: int
+    npix: np.ndarray
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Scalar precision per mark (px): ``sqrt((var_x + var_y) / 2)``."""
+        return np.sqrt(0.5 * (self.cov[:, 0, 0] + self.cov[:, 1, 1]))
+
+    @property
+    def cnr(self) -> np.ndarray:
+        """Contrast-to-noise ratio ``|b| / noise`` of every mark."""
+        return np.abs(self.gain) / np.maximum(self.noise, 1e-12)
+
+
+def support_mask(shape: MarkShape, u, v, margin: float) -> np.ndarray:
+    """Pixels that carry information about a mark: within ``margin`` px of the drawn shape.
+
+    ``u``, ``v`` are mark-frame coordinates (px); returns a boolean array of their shape.
+    """
+    if shape.kind == "cross":
+        hl = 0.5 * shape.length + margin
+        hw = 0.5 * shape.width + margin
+        au, av = np.abs(u), np.abs(v)
+        return ((au <= hl) & (av <= hw)) | ((av <= hl) & (au <= hw))
+    r = np.hypot(u, v)
+    return r <= shape.extent + margin
+
+
+def _parts(shape: MarkShape, u, v) -> np.ndarray:
+    """Index of the part (0..K-1) each mark-frame point belongs to (-1: centre square)."""
+    if shape.kind != "cross":
+        return np.zeros(np.shape(u), np.int8)
+    part = np.where(np.abs(u) >= np.abs(v), np.where(u >= 0, 0, 2), np.where(v >= 0, 1, 3))
+    core = np.maximum(np.abs(u), np.abs(v)) <= shape.width
+    return np.where(core, -1, part).astype(np.int8)
+
+
+def _gather(patches, origin, ref, c, A, shape, margin):
+    """Pick each mark's relevant pixels from its patch into padded (N, P) arrays.
+
+    Returns ``(X, Y, G, valid)``: pixel coordinates relative to ``ref`` (float32), grey
+    values (float32, 0 where padded) and the validity mask. Valid pixels come first in each row.
+    """
+    n, h, w = patches.shape
+    off = (origin - ref).astype(np.float32)
+    jj = np.arange(w, dtype=np.float32)
+    ii = np.arange(h, dtype=np.float32)
+    X = np.broadcast_to(off[:, 0, None, None] + jj[None, None, :], (n, h, w))
+    Y = np.broadcast_to(off[:, 1, None, None] + ii[None, :, None], (n, h, w))
+    cl = (c - ref).astype(np.float32)
+    dx = X - cl[:, 0, None, None]
+    dy = Y - cl[:, 1, None, None]
+    A = A.astype(np.float32)
+    u = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
+    v = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+    m = support_mask(shape, u, v, margin) & np.isfinite(patches)
+    m = m.reshape(n, -1)
+    counts = m.sum(1)
+    P = max(int(counts.max()), 1)
+    order = np.argsort(~m, axis=1, kind="stable")[:, :P]
+    valid = np.arange(P)[None, :] < counts[:, None]
+    take = lambda a: np.take_along_axis(np.ascontiguousarray(a).reshape(n, -1), order, 1)  # noqa: E731
+    G = take(patches)
+    G[~valid] = 0.0
+    return take(X), take(Y), G, valid
+
+
+def _tukey(r, scale):
+    t = r / (4.685 * scale[:, None])
+    return np.where(np.abs(t) < 1.0, (1.0 - t * t) ** 2, 0.0).astype(np.float32)
+
+
+def _mad(r, valid):
+    """Robust standard deviation of each row's valid residuals (1.4826 * median |r|)."""
+    ar = np.where(valid, np.abs(r), np.inf)
+    ar.sort(axis=1)
+    k = np.maximum(valid.sum(1) // 2, 0)
+    med = ar[np.arange(len(k)), np.minimum(k, ar.shape[1] - 1)]
+    return np.maximum(1.4826 * np.where(np.isfinite(med), med, 0.0), 1e-9)
+
+
+def _model(p, data, shape, need_jac=True):
+    """Model grey values (N, P) and, if asked, the Jacobian (N, P, 11) at parameters ``p``.
+
+    ``p[:, 0:2]`` is the centre relative to the reference point of the pixel coordinates.
+    """
+    X, Y = data[0], data[1]
+    q = p.astype(np.float32)
+    dx = X - q[:, 0:1]
+    dy = Y - q[:, 1:2]
+    a00, a01, a10, a11 = (q[:, k : k + 1] for k in range(2, 6))
+    u = a00 * dx + a01 * dy
+    v = a10 * dx + a11 * dy
+    ap = tuple(x[:, None] for x in aperture(q[:, 2:6].reshape(-1, 2, 2)))
+    T, Tu, Tv, Ts = shape.evaluate(u, v, q[:, 6:7], aperture=ap)
+    M = q[:, 7:8] + q[:, 8:9] * T + q[:, 9:10] * X + q[:, 10:11] * Y
+    if not need_jac:
+        return M, T, u, v, None
+    b = q[:, 8:9]
+    bu, bv = b * Tu, b * Tv
+    J = np.empty(X.shape + (_NP,), np.float32)
+    J[..., 0] = -(bu * a00 + bv * a10)
+    J[..., 1] = -(bu * a01 + bv * a11)
+    J[..., 2] = bu * dx
+    J[..., 3] = bu * dy
+    J[..., 4] = bv * dx
+    J[..., 5] = bv * dy
+    J[..., 6] = b * Ts
+    J[..., 7] = 1.0
+    J[..., 8] = T
+    J[..., 9] = X
+    J[..., 10] = Y
+    return M, T, u, v, J
+
+
+def _init_radiometry(p, data, shape):
+    """Offset and gain by linear regression of the data on the template (in place)."""
+    G, valid = data[2], data[3]
+    vf = valid.astype(np.float32)
+    p[:, 9:11] = 0.0
+    p[:, 7:9] = (0.0, 1.0)
+    _, T, _, _, _ = _model(p, data, shape, need_jac=False)
+    sw = np.maximum(vf.sum(1), 1.0)
+    mT = (T * vf).sum(1) / sw
+    mG = (G * vf).sum(1) / sw
+    cov_tg = ((T - mT[:, None]) * (G - mG[:, None]) * vf).sum(1)
+    var_t = np.maximum(((T - mT[:, None]) ** 2 * vf).sum(1), 1e-12)
+    p[:, 8] = cov_tg / var_t
+    p[:, 7] = mG - p[:, 8] * mT
+
+
+def _normal(J, w, r, active):
+    """Weighted normal equations (float64) with inactive parameters pinned."""
+    Jw = J * w[..., None]
+    JwT = Jw.transpose(0, 2, 1)
+    Nm = np.matmul(JwT, J).astype(float)
+    g = np.matmul(JwT, r[..., None])[..., 0].astype(float)
+    off = ~active
+    Nm[:, off, :] = 0.0
+    Nm[:, :, off] = 0.0
+    g[:, off] = 0.0
+    idx = np.where(off)[0]
+    Nm[:, idx, idx] = 1.0
+    return Nm, g
+
+
+def _step(p, data, shape, active, robust):
+    """One (robust) Gauss-Newton step on ``p`` in place; returns the centre update (px)."""
+    G, valid = data[2], data[3]
+    M, T, u, v, J = _model(p, data, shape)
+    r = np.where(valid, G - M, 0.0).astype(np.float32)
+    w = _tukey(r, _mad(r, valid)) if robust else valid.astype(np.float32)
+    w *= valid
+    Nm, g = _normal(J, w, r, active)
+    # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
+    diag = np.arange(_NP)
+    Nm[:, diag, diag] *= 1.0 + 1e-6
+    try:
+        dp = np.linalg.solve(Nm, g[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        dp = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(Nm, g, strict=True)])
+    dp[~np.isfinite(dp)] = 0.0
+    # step limits: centre 1.5 px, shape 5 %, blur within a sane range
+    dc = np.hypot(dp[:, 0], dp[:, 1])
+    k = np.minimum(1.0, 1.5 / np.maximum(dc, 1e-12))
+    dp[:, 0:2] *= k[:, None]
+    dp[:, 2:6] = np.clip(dp[:, 2:6], -0.05, 0.05)
+    p += dp
+    p[:, 6] = np.clip(p[:, 6], 0.25, 25.0)
+    return dc
+
+
+def lsm(
+    patches: np.ndarray,
+    origin: np.ndarray,
+    c0: np.ndarray,
+    A0: np.ndarray,
+    shape: MarkShape,
+    s0: float,
+    init_err: float = 2.0,
+    robust: bool = True,
+    max_iter: int = 10,
+    tol: float = 2e-4,
+    fit_shape: bool = True,
+) -> LSMResult:
+    """Fit the analytic mark model to N patches at once.
+
+    Parameters
+    ----------
+    patches : (N, h, w) float array
+        Grey values (any linear scale); NaN where a patch leaves the image.
+    origin : (N, 2) float
+        Pixel coordinates (x, y) of each patch's element [0, 0].
+    c0 : (N, 2) float
+        Initial centres (pixel system), within about ``init_err`` px of the truth.
+    A0 : (2, 2) or (N, 2, 2) float
+        Initial pixel -> mark-frame affine (from the global grid model).
+    shape : MarkShape
+        The mark's drawn geometry at the nominal scale (px).
+    s0 : float
+        Expected blur (px), the starting value of ``s``.
+    init_err : float
+        Expected error of ``c0`` (px); above 0.75 px a capture stage with a wide blur runs first.
+    robust : bool
+        Tukey pixel weights after the first two fine iterations.
+    max_iter : int
+        Iterations of the fine stage.
+    tol : float
+        Convergence threshold on the centre update (px).
+    fit_shape : bool
+        Estimate the affine ``A`` (else keep ``A0``).
+
+    Returns
+    -------
+    LSMResult
+    """
+    patches = np.asarray(patches, np.float32)
+    n = patches.shape[0]
+    origin = np.asarray(origin, float).reshape(n, 2)
+    c0 = np.asarray(c0, float).reshape(n, 2)
+    ref = np.round(c0)
+    A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2)).copy()
+    s0 = max(float(s0), 0.3)
+    s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
+    p = np.zeros((n, _NP))
+    p[:, 0:2] = c0 - ref
+    p[:, 2:6] = A0.reshape(n, 4)
+    p[:, 6] = s_cap
+
+    full = np.ones(_NP, bool)
+    if not fit_shape:
+        full[2:6] = False
+    capture = np.zeros(_NP, bool)
+    capture[[0, 1, 7, 8, 9, 10]] = True
+
+    def gather(margin):
+        return _gather(patches, origin, ref, p[:, 0:2] + ref, p[:, 2:6].reshape(n, 2, 2),
+                       shape, margin)
+
+    # capture stage: wide blur, only position and radiometry, generous pixel margin
+    if s_cap > s0:
+        data = gather(3.0 * s_cap + init_err + 1.0)
+        _init_radiometry(p, data, shape)
+        for _ in range(3):
+            _step(p, data, shape, capture, robust=False)
+        p[:, 6] = s0
+    # fine stage: all parameters, tight margin around the mark, robust weights
+    data = gather(3.0 * s0 + 2.0)
+    if s_cap <= s0:
+        _init_radiometry(p, data, shape)
+    converged = np.zeros(n, bool)
+    todo = np.arange(n)
+    it = 0
+    for it in range(1, max_iter + 1):
+        rob = robust and it > 2
+        sub = tuple(a[todo] for a in data)
+        q = p[todo]
+        dc = _step(q, sub, shape, full, robust=rob)
+        p[todo] = q
+        if rob or not robust:
+            done = dc < tol
+            converged[todo[done]] = True
+            todo = todo[~done]
+            if todo.size == 0:
+                break
+    X, Y, G, valid = data
+    vf = valid.astype(np.float32)
+    sw = np.maximum(vf.sum(1), 1.0)
+    npix = valid.sum(1)
+
+    # final statistics at the solution
+    M, T, u, v, J = _model(p, data, shape)
+    r = np.where(valid, G - M, 0.0).astype(np.float32)
+    noise = _mad(r, valid)
+    w = (_tukey(r, noise) if robust else vf) * vf
+    Nm, _ = _normal(J, w, r, full)
+    red = np.maximum(w.sum(1) - full.sum(), 1.0)
+    sigma0 = np.sqrt((w * r * r).sum(1, dtype=float) / red)
+    try:
+        Ninv = np.linalg.inv(Nm)
+    except np.linalg.LinAlgError:
+        Ninv = np.linalg.pinv(Nm)
+    cov = Ninv[:, 0:2, 0:2] * (sigma0**2)[:, None, None]
+
+    # correlation of data with the fitted template (background tilt removed)
+    Gb = G - p[:, 9:10] * X - p[:, 10:11] * Y
+    mT = (T * vf).sum(1) / sw
+    mG = (Gb * vf).sum(1) / sw
+    dT = (T - mT[:, None]) * vf
+    dG = (Gb - mG[:, None]) * vf
+    score = (dT * dG).sum(1) / np.sqrt(np.maximum((dT**2).sum(1) * (dG**2).sum(1), 1e-30))
+    score *= np.sign(p[:, 8])
+
+    # support of each part of the mark: share of well-fitting pixels near the drawn shape
+    parts = _parts(shape, u, v)
+    near = support_mask(shape, u, v, 1.5 * p[:, 6:7] + 1.0) & valid
+    good = (w > 0.5) & near
+    K = 4 if shape.kind == "cross" else 1
+    support = np.empty((n, K))
+    for k in range(K):
+        sel = near & (parts == k)
+        support[:, k] = (good & sel).sum(1) / np.maximum(sel.sum(1), 1)
+
+    return LSMResult(
+        centre=p[:, 0:2] + ref,
+        A=p[:, 2:6].reshape(n, 2, 2).copy(),
+        s=p[:, 6].copy(),
+        offset=p[:, 7].copy(),
+        gain=p[:, 8].copy(),
+        cov=cov,
+        sigma0=sigma0,
+        noise=noise,
+        score=score,
+        support=support,
+        converged=converged,
+        iterations=it,
+        npix=npix,
+    )

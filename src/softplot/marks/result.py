@@ -1,0 +1,153 @@
+"""The detection result: one entry per certificate mark, and its JSON form (issue 3, point 2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Detection", "STATUSES"]
+
+#: possible mark statuses
+STATUSES = ("measured", "missing", "rejected")
+
+
+def _num(v, nd=4):
+    if v is None:
+        return None
+    v = float(v)
+    if not np.isfinite(v):
+        return None
+    return round(v, nd)
+
+
+@dataclass
+class Detection:
+    """Marks measured on one scan (arrays over the certificate's marks, in certificate order:
+    reseau crosses row-major from the top-left, then fiducials).
+
+    Attributes
+    ----------
+    image : str
+        Scan file name (or "<array>").
+    camera : str
+        Certificate name.
+    width, height : int
+        Scan size (px).
+    dpi : float
+        Scan resolution used (given, from the file, or estimated: see ``dpi_source``).
+    polarity : str
+        "positive" (dark marks on a bright background, a print) or "negative" (bright marks).
+    kind : list of str
+        "reseau" or "fiducial" per mark.
+    name : list of str
+        ``R<row>C<col>`` for crosses, the certificate's name for fiducials.
+    row, col : (N,) int
+        Reseau row/column (-1 for fiducials; null in JSON).
+    film : (N, 2) float
+        Certificate film coordinates (mm).
+    xy : (N, 2) float
+        Measured centres, pixel system (NaN when not measured).
+    sigma : (N,) float
+        Standard deviation of the centre (px) from the LSM covariance, ``sqrt((vx + vy)/2)``.
+    sigma_xy : (N, 2) float
+        Standard deviations in x and y (px).
+    score : (N,) float
+        Correlation of data and fitted model (0..1; NaN when not fitted).
+    cnr : (N,) float
+        Contrast-to-noise ratio of the fitted mark.
+    status : list of str
+        "measured", "missing" (not found: covered, cut by the scan edge, too weak) or
+        "rejected" (found, but an outlier against the global model or failing a shape test).
+    reason : list of str
+        Why a mark is missing or rejected ("" when measured).
+    transform : dict
+        The global film mm -> pixel model fitted to the measured marks:
+        ``{"kind": "projective", "matrix": 3x3, "rms_px": ..., "n": ...}``.
+    rms_px : float
+        RMS residual (px) of the measured marks against ``transform``.
+    residual : (N, 2) float
+        Measured minus model (px), NaN when not measured.
+    warnings : list of str
+    """
+
+    image: str
+    camera: str
+    width: int
+    height: int
+    dpi: float
+    polarity: str
+    kind: list
+    name: list
+    row: np.ndarray
+    col: np.ndarray
+    film: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+    sigma_xy: np.ndarray
+    score: np.ndarray
+    cnr: np.ndarray
+    status: list
+    reason: list
+    transform: dict
+    rms_px: float
+    residual: np.ndarray
+    warnings: list = field(default_factory=list)
+    dpi_source: str = "given"
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Boolean mask of the measured marks."""
+        return np.array([s == "measured" for s in self.status], bool)
+
+    def __len__(self) -> int:
+        return len(self.name)
+
+    def summary(self) -> str:
+        """One line: counts by status, rms, polarity, dpi."""
+        m = int(self.measured.sum())
+        miss = sum(s == "missing" for s in self.status)
+        rej = sum(s == "rejected" for s in self.status)
+        return (f"{self.image}: {m}/{len(self)} marks measured, {miss} missing, {rej} rejected; "
+                f"rms {self.rms_px:.3f} px against the {self.transform.get('kind', '?')} model; "
+                f"{self.polarity}, {self.dpi:.1f} dpi ({self.dpi_source})")
+
+    def to_json(self) -> dict:
+        """The issue-3 JSON document (a dict ready for ``json.dump``)."""
+        marks = []
+        for i in range(len(self)):
+            ok = np.all(np.isfinite(self.xy[i]))
+            marks.append({
+                "kind": self.kind[i],
+                "name": self.name[i],
+                "row": int(self.row[i]) if self.row[i] >= 0 else None,
+                "col": int(self.col[i]) if self.col[i] >= 0 else None,
+                "x": _num(self.xy[i, 0], 5) if ok else None,
+                "y": _num(self.xy[i, 1], 5) if ok else None,
+                "sigma": _num(self.sigma[i], 5),
+                "score": _num(self.score[i], 4),
+                "status": self.status[i],
+                "film_x": _num(self.film[i, 0], 6),
+                "film_y": _num(self.film[i, 1], 6),
+                "sigma_x": _num(self.sigma_xy[i, 0], 5),
+                "sigma_y": _num(self.sigma_xy[i, 1], 5),
+                "cnr": _num(self.cnr[i], 2),
+                "residual_x": _num(self.residual[i, 0], 4),
+                "residual_y": _num(self.residual[i, 1], 4),
+                "reason": self.reason[i] or None,
+            })
+        return {
+            "image": self.image,
+            "camera": self.camera,
+            "width": int(self.width),
+            "height": int(self.height),
+            "dpi": _num(self.dpi, 3),
+            "dpi_source": self.dpi_source,
+            "polarity": self.polarity,
+            "marks": marks,
+            "transform": self.transform,
+            "rms_px": _num(self.rms_px, 5),
+            "warnings": list(self.warnings),
+            "counts": {s: sum(x == s for x in self.status) for s in STATUSES},
+        }
