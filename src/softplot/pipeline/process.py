@@ -146,6 +146,8 @@ def process_scan(
     ref = marks_from_detection(cam, dj)
     cv = compare(cam, ref, crossval_methods)
     applied = method or cv.recommended or "mesh"
+    if applied == "mesh":  # the camera's default mesh, as the scores name it
+        applied = cv.default_mesh or applied
     try:
         score = cv.score(applied)
         loo_rms, loo_max = score.loo_rms_um, score.loo_max_um
