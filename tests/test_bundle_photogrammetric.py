@@ -180,10 +180,13 @@ def test_free_network_scale_from_a_distance():
     res = bundle_adjust(d, BundleOptions(datum="free", scale_distance=(a, b, true)))
     assert np.linalg.norm(res.XYZ[0] - res.XYZ[48]) == pytest.approx(true, rel=1e-9)
     # with the true scale, every other distance is right to its precision
+    Q = res.full_point_covariance()
     i, j = 5, 30
     dd = np.linalg.norm(res.XYZ[i] - res.XYZ[j]) - np.linalg.norm(net.XYZ_true[i] - net.XYZ_true[j])
-    assert abs(dd) < 0.003
-    Q = res.full_point_covariance()
+    ed = np.zeros(Q.shape[0])
+    ud = (res.XYZ[i] - res.XYZ[j]) / np.linalg.norm(res.XYZ[i] - res.XYZ[j])
+    ed[3 * i : 3 * i + 3], ed[3 * j : 3 * j + 3] = ud, -ud
+    assert abs(dd) < 4 * np.sqrt(ed @ Q @ ed)
     e = np.zeros(Q.shape[0])
     u = (res.XYZ[0] - res.XYZ[48]) / true
     e[0:3], e[3 * 48 : 3 * 48 + 3] = u, -u
@@ -221,7 +224,7 @@ def test_free_network_initialised_by_relative_orientation():
     r0 = np.linalg.norm(net.XYZ_true[0] - net.XYZ_true[48]) / np.linalg.norm(
         net.XYZ_true[6] - net.XYZ_true[42]
     )
-    assert r1 == pytest.approx(r0, rel=1e-3)
+    assert r1 == pytest.approx(r0, rel=1e-2)  # shape right to its precision (~0.3 %)
 
 
 def test_weighted_interior_orientation_stays_near_its_prior():

@@ -96,6 +96,7 @@ class BundleCamera:
     values: np.ndarray
     sigma: np.ndarray
     pixel_size_mm: float | None = None
+    sigma_image_mm: float | None = None
 
     @classmethod
     def from_certificate(cls, cam, free=(), weighted=None, pixel_size_mm=None) -> "BundleCamera":
@@ -156,6 +157,8 @@ class BundleData:
         Exterior orientation held fixed.
     check : ndarray of bool, shape (P,)
         Check points: known coordinates in ``control`` not used as control.
+    series : list of str, optional
+        Series label of every photo (test-field calibration in series).
     """
 
     cameras: list
@@ -173,6 +176,7 @@ class BundleData:
     sigma_xy: np.ndarray
     photo_fixed: np.ndarray | None = None
     check: np.ndarray | None = None
+    series: list | None = None
 
     def __post_init__(self) -> None:
         F, P = len(self.photo_names), len(self.point_names)

@@ -162,10 +162,22 @@ def _relative_start(d: BundleData) -> None:
     oj = np.array([key_j[p] for p in pts])
     c = _c_of(d, i)
     xy1, xy2 = _reduced(d, oi), _reduced(d, oj)
-    bx = 1.0 if np.mean(xy1[:, 0] - xy2[:, 0]) > 0 else -1.0
-    ro = relative_orientation(
-        xy1, xy2, c, bx=bx, mode="dependent", sigma=float(np.median(d.sigma_xy))
-    )
+    best = None
+    for bx in (1.0, -1.0):  # the side of the right photo: keep the better-fitting solution
+        try:
+            ro = relative_orientation(
+                xy1, xy2, c, bx=bx, mode="dependent", sigma=float(np.median(d.sigma_xy))
+            )
+        except SoftplotError:
+            continue
+        if best is None or ro.sigma0 < best.sigma0:
+            best = ro
+    if best is None:
+        raise SoftplotError(
+            f"free network: relative orientation of {d.photo_names[i]} and "
+            f"{d.photo_names[j]} failed"
+        )
+    ro = best
     d.X0[i] = 0.0
     d.angles[i] = 0.0
     d.X0[j] = ro.base

@@ -2,11 +2,11 @@
 
 Object frame: X to the right along the room, Y the viewing direction (depth), Z up, metres.
 The 7 x 7 targets stand at depths of 10-38 m in front of the camera stations (Preuss: 10 to
-40 m), spread over about 24 m x 10 m so that they fill the format. Camera stations stand on a
-line across the room at ``Y = 0``; *convergent* photos look at the centre of the field from
-stations up to +-12 m apart, *rolled* photos are turned by 0, 90, 180 and 270 degrees about
-the optical axis (the two ingredients that decorrelate the principal point from the exterior
-orientation).
+40 m), spread over about 40 m x 18 m so that they fill the wide-angle format. Camera
+stations stand on a line across the room at ``Y = 0``; *convergent* photos look at the
+centre of the field from stations up to +-12 m apart, *rolled* photos are turned by 0, 90,
+180 and 270 degrees about the optical axis (the two ingredients that decorrelate the
+principal point from the exterior orientation).
 Default camera: a wide-angle Wild P-31 (c = 45.3 mm, 4 x 5 in plates: 120 x 96 mm format),
 radial distortion k1 = -3e-7 mm^-2 (-65 um at r = 60 mm); the UMK 10/1318 (c = 99.5 mm,
 166 x 120 mm) is one ``intrinsics=..., format_mm=(166, 120)`` away.
@@ -32,7 +32,7 @@ GIVEN_INTRINSICS = np.array([45.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 def field_points(seed: int = 0) -> np.ndarray:
     """The 49 target coordinates (m), row-major 7 x 7 from the top-left as seen from Y=0."""
     rng = np.random.default_rng(1000 + seed)
-    X, Z = np.meshgrid(np.linspace(-12.0, 12.0, 7), np.linspace(7.0, -3.0, 7))
+    X, Z = np.meshgrid(np.linspace(-20.0, 20.0, 7), np.linspace(12.0, -6.0, 7))
     Y = 10.0 + 28.0 * rng.random(X.shape)
     P = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
     P[:, :2] += rng.normal(0, 0.3, (49, 2))
@@ -51,6 +51,7 @@ def make_testfield(
     seed: int = 0,
     approx_sigma=(0.3, 0.02),
     depth_scale: float = 1.0,
+    field_seed: int | None = None,
 ) -> Network:
     """Photos of the 49-point test field with exact truth.
 
@@ -76,6 +77,8 @@ def make_testfield(
         Perturbation of the approximate exterior orientations.
     depth_scale : float
         Scales the depth spread of the field (< 1 flattens it: a weak geometry for c).
+    field_seed : int, optional
+        Seed of the target layout (default ``seed``).
 
     Returns
     -------
@@ -84,7 +87,7 @@ def make_testfield(
     rng = np.random.default_rng(seed)
     intr = np.asarray(TRUE_INTRINSICS if intrinsics is None else intrinsics, float)
     giv = np.asarray(GIVEN_INTRINSICS if given is None else given, float)
-    P = field_points(seed)
+    P = field_points(seed if field_seed is None else field_seed)
     if depth_scale != 1.0:
         P[:, 1] = 25.0 + (P[:, 1] - 25.0) * depth_scale
     centre = np.array([0.0, 25.0, 2.0])
@@ -129,4 +132,65 @@ def make_testfield(
         xy_true=xy_true,
         sigma_xy=noise if noise > 0 else 0.001,
         info={"kind": "testfield", "convergent": convergent, "rolled": rolled, "seed": seed},
+    )
+
+
+def make_series(
+    n_series: int = 3,
+    photos_per_series: int = 12,
+    spread_um=(8.0, 10.0, 7.0),
+    seed: int = 0,
+    **kwargs,
+) -> Network:
+    """Several series of photos of the test field, each with its own interior orientation.
+
+    As Preuss's repeatability experiment: every series (one plate loading / one day) shifts
+    ``x0, y0, c`` by normal deviates of ``spread_um`` (um). All photos refer to one camera;
+    ``info["series"]`` labels every photo and ``info["series_truth"]`` (n_series, 10) holds the
+    true interior orientation of each series.
+    """
+    rng = np.random.default_rng(5000 + seed)
+    base = np.asarray(kwargs.pop("intrinsics", TRUE_INTRINSICS), float)
+    parts, truths = [], []
+    for s in range(n_series):
+        t = base.copy()
+        t[[1, 2, 0]] += rng.normal(0, 1, 3) * np.asarray(spread_um)[[0, 1, 2]] / 1000.0
+        truths.append(t)
+        parts.append(
+            make_testfield(
+                n_photos=photos_per_series,
+                intrinsics=t,
+                seed=seed * 100 + s,
+                field_seed=seed,
+                **kwargs,
+            )
+        )
+    first = parts[0]
+    F = sum(len(p.photo_names) for p in parts)
+    off = np.cumsum([0] + [len(p.photo_names) for p in parts])
+    names = [f"S{s + 1}-{n}" for s, p in enumerate(parts) for n in p.photo_names]
+    labels = [f"S{s + 1}" for s, p in enumerate(parts) for _ in p.photo_names]
+    return Network(
+        camera_names=first.camera_names,
+        intr_true=first.intr_true,
+        intr_given=first.intr_given,
+        format_mm=first.format_mm,
+        photo_names=names,
+        photo_camera=np.zeros(F, int),
+        X0_true=np.vstack([p.X0_true for p in parts]),
+        M_true=np.vstack([p.M_true for p in parts]),
+        X0_approx=np.vstack([p.X0_approx for p in parts]),
+        angles_approx=np.vstack([p.angles_approx for p in parts]),
+        point_names=first.point_names,
+        XYZ_true=first.XYZ_true,
+        XYZ_approx=first.XYZ_approx,
+        control=first.control,
+        control_sigma=first.control_sigma,
+        check=first.check,
+        obs_photo=np.concatenate([p.obs_photo + off[s] for s, p in enumerate(parts)]),
+        obs_point=np.concatenate([p.obs_point for p in parts]),
+        xy=np.vstack([p.xy for p in parts]),
+        xy_true=np.vstack([p.xy_true for p in parts]),
+        sigma_xy=first.sigma_xy,
+        info={"kind": "testfield-series", "series": labels, "series_truth": np.array(truths)},
     )

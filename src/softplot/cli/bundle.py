@@ -1,0 +1,155 @@
+"""``softplot bundle``: bundle adjustment of a project folder or a BAL problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from softplot.cli._bundle_common import (
+    guard_output,
+    lm_progress,
+    parse_free,
+    project_inputs,
+    write_json,
+)
+from softplot.errors import SoftplotError
+
+
+@click.command("bundle")
+@click.argument("project", required=False, type=click.Path(file_okay=False))
+@click.option(
+    "--bal",
+    "bal",
+    type=click.Path(dir_okay=False),
+    help="Adjust a Bundle Adjustment in the Large file instead of a project.",
+)
+@click.option("--json", "json_out", type=click.Path(dir_okay=False), help="Write results JSON.")
+@click.option(
+    "--report",
+    "report_out",
+    type=click.Path(dir_okay=False),
+    help="Write the text report to a file (else it is printed).",
+)
+@click.option(
+    "--plots",
+    "plots_dir",
+    type=click.Path(file_okay=False),
+    help="Write residual plots (PNG) into this folder.",
+)
+@click.option(
+    "--free",
+    "free",
+    help="Free interior parameters for every camera, e.g. c,x0,y0,k1 "
+    "(default: as cameras.toml says).",
+)
+@click.option(
+    "--free-network",
+    is_flag=True,
+    help="Ignore control as datum: inner-constraint (minimum-trace) datum.",
+)
+@click.option(
+    "--scale",
+    nargs=3,
+    type=(str, str, float),
+    default=None,
+    help="Free network scale from a distance: POINT_A POINT_B DISTANCE.",
+)
+@click.option(
+    "--angle-unit", type=click.Choice(["deg", "gon", "rad"]), default="deg", show_default=True
+)
+@click.option(
+    "--alpha",
+    type=float,
+    default=0.001,
+    show_default=True,
+    help="Data-snooping significance level.",
+)
+@click.option("--max-iterations", type=int, default=100, show_default=True)
+def command(
+    project,
+    bal,
+    json_out,
+    report_out,
+    plots_dir,
+    free,
+    free_network,
+    scale,
+    angle_unit,
+    alpha,
+    max_iterations,
+):
+    """Bundle adjustment of PROJECT (folder, see docs/bundle.md) or of a BAL file (--bal)."""
+    if (project is None) == (bal is None):
+        raise SoftplotError("give either a PROJECT folder or --bal FILE")
+    from softplot.adjust.sparse_bundle import LMOptions
+
+    if bal is not None:
+        from softplot.adjust.bal import read_bal, solve_bal
+
+        guard_output(json_out, [bal])
+        prob = read_bal(bal)
+        cb, close = lm_progress("LM")
+        try:
+            res = solve_bal(prob, LMOptions(max_iterations=max_iterations, progress=cb))
+        finally:
+            close()
+        click.echo(
+            f"BAL {Path(bal).name}: {prob.n_cameras} cameras, {prob.n_points} points, "
+            f"{prob.n_observations} observations"
+        )
+        click.echo(f"initial_cost {res.initial_cost:.6e}")
+        click.echo(f"final_cost   {res.final_cost:.6e}")
+        click.echo(f"iterations   {res.iterations}")
+        click.echo(f"seconds      {res.seconds:.3f}")
+        click.echo(f"rms_px       {res.rms_px:.4f}   ({res.message})")
+        if json_out:
+            write_json(res.to_json(), json_out)
+        return
+    from softplot.orientation.bundle import BundleOptions, bundle_adjust
+    from softplot.orientation.bundle_init import initialize
+    from softplot.orientation.bundle_io import read_project
+    from softplot.orientation.bundle_report import text_report, write_plots
+
+    inputs = project_inputs(project)
+    for o in (json_out, report_out):
+        guard_output(o, inputs)
+    data = read_project(project)
+    f = parse_free(free)
+    if f is not None:
+        import numpy as np
+
+        for c in data.cameras:
+            c.sigma[:] = [
+                np.inf if n in f else (0.0 if np.isinf(s) else s)
+                for n, s in zip(
+                    ("c", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2"),
+                    c.sigma,
+                    strict=True,
+                )
+            ]
+    if free_network:
+        data.control_sigma[:] = float("nan")
+    initialize(data)
+    cb, close = lm_progress("bundle")
+    opt = BundleOptions(
+        datum="free" if free_network else "auto",
+        scale_distance=scale,
+        alpha0=alpha,
+        lm=LMOptions(function_tolerance=1e-10, max_iterations=max_iterations, progress=cb),
+    )
+    try:
+        res = bundle_adjust(data, opt)
+    finally:
+        close()
+    txt = text_report(res, angle_unit=angle_unit, title=f"Bundle adjustment of {project}")
+    if report_out:
+        Path(report_out).write_text(txt, encoding="utf-8")
+        click.echo(f"wrote {report_out}", err=True)
+    else:
+        click.echo(txt)
+    if json_out:
+        write_json(res.to_json(), json_out)
+    if plots_dir:
+        for p in write_plots(res, plots_dir):
+            click.echo(f"wrote {p}", err=True)
