@@ -33,6 +33,9 @@ COMMANDS = [
     "correct",
     "process",
     "batch",
+    "bundle",
+    "calibrate",
+    "triangulate",
 ]
 
 
