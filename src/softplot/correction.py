@@ -363,56 +363,97 @@ def _film_grid(camera: Camera, ps: float) -> tuple[int, int, float, float]:
     return nx, ny, -nx * ps / 2.0, ny * ps / 2.0
 
 
+def _row_intervals(T, ys, x_min, ps, nx, free):
+    """Owned column interval [j0, j1] per output row of one cell (film plane).
+
+    ``T`` (3, 3) maps film (x, y, 1) to cell parameters (s, t) (h33 = 1). Along a row of
+    constant y each condition -e <= s <= 1 + e, -e <= t <= 1 + e is linear in x (times the
+    positive denominator), so the owned pixels of the row are one interval. ``free`` =
+    (left, right, top, bottom): drop the condition on that side (border cells own everything
+    beyond the reseau, as the point location does).
+    """
+    e = 1e-7
+    lo = np.full(ys.shape, -np.inf)
+    hi = np.full(ys.shape, np.inf)
+    g, h = T[2, 0], T[2, 1]
+    wy = h * ys + 1.0  # w = g x + wy
+    conds = []
+    for r, side_lo, side_hi in ((0, free[0], free[1]), (1, free[2], free[3])):
+        a = T[r, 0]
+        by = T[r, 1] * ys + T[r, 2]  # numerator = a x + by
+        if not side_lo:  # a x + by >= -e (g x + wy)
+            conds.append((a + e * g, -(by + e * wy)))
+        if not side_hi:  # a x + by <= (1 + e)(g x + wy)  <=>  -(a - (1+e) g) x >= by - (1+e) wy
+            conds.append((-(a - (1 + e) * g), by - (1 + e) * wy))
+    for alpha, beta in conds:  # alpha x >= beta
+        if alpha > 0:
+            lo = np.maximum(lo, beta / alpha)
+        elif alpha < 0:
+            hi = np.minimum(hi, beta / alpha)
+        else:
+            bad = beta > 0
+            lo = np.where(bad, np.inf, lo)
+    with np.errstate(invalid="ignore"):
+        j0 = np.ceil((lo - x_min) / ps - 0.5)
+        j1 = np.floor((hi - x_min) / ps - 0.5)
+    j0 = np.clip(np.nan_to_num(j0, nan=nx, posinf=nx, neginf=0), 0, nx).astype(np.intp)
+    j1 = np.clip(np.nan_to_num(j1, nan=-1, posinf=nx - 1, neginf=-1), -1, nx - 1).astype(np.intp)
+    return j0, j1
+
+
 def _map_homography_mesh(model, nx, ny, x_min, y_max, ps):
-    """Exact film -> pixel maps (float32) for a homography mesh, cell by cell."""
+    """Exact film -> pixel maps (float32) for a homography mesh, cell by cell.
+
+    Per cell: its owned pixels row by row (:func:`_row_intervals`, the same cell test as the
+    point path), and its film -> pixel homography evaluated separably (one column term plus
+    one row term per pixel, float32: the maps are float32 anyway).
+    """
     mesh = model.mesh
     H = mesh.film_cell_homographies()  # (K, 3, 3) film -> pixel
-    plane = mesh._film  # film plane: raw film -> (s, t) homographies
-    T = plane.to_raw  # (K, 3, 3)
+    T = mesh._film.to_raw  # (K, 3, 3) film -> (s, t), h33 = 1
     rows, cols = mesh.rows, mesh.cols
     mapx = np.empty((ny, nx), np.float32)
     mapy = np.empty((ny, nx), np.float32)
     xs = x_min + (np.arange(nx) + 0.5) * ps
     ys = y_max - (np.arange(ny) + 0.5) * ps
-    Q = mesh.film_quads()  # (K, 4, 2)
-    eps = 1e-9
+    jj = np.arange(nx)
+    Q = mesh.film_quads()
     for k in range(Q.shape[0]):
         r, c = divmod(k, cols - 1)
-        qx, qy = Q[k, :, 0], Q[k, :, 1]
-        # block: the quad's bounding box, extended to the grid edge for border cells
-        x0 = -np.inf if c == 0 else qx.min()
-        x1 = np.inf if c == cols - 2 else qx.max()
-        y1 = np.inf if r == 0 else qy.max()
-        y0 = -np.inf if r == rows - 2 else qy.min()
-        j0 = int(np.searchsorted(xs, x0 - ps))
-        j1 = int(np.searchsorted(xs, x1 + ps))
-        i0 = int(np.searchsorted(-ys, -(y1 + ps)))
-        i1 = int(np.searchsorted(-ys, -(y0 - ps)))
-        if j1 <= j0 or i1 <= i0:
+        free = (c == 0, c == cols - 2, r == 0, r == rows - 2)
+        qy = Q[k, :, 1]
+        y1 = np.inf if free[2] else qy.max()
+        y0 = -np.inf if free[3] else qy.min()
+        i0 = int(np.searchsorted(-ys, -(y1 + 2 * ps)))
+        i1 = int(np.searchsorted(-ys, -(y0 - 2 * ps)))
+        if i1 <= i0:
             continue
-        bx = xs[j0:j1][None, :]
-        by = ys[i0:i1][:, None]
-        t = T[k]
-        w = t[2, 0] * bx + (t[2, 1] * by + t[2, 2])
-        s_ = (t[0, 0] * bx + (t[0, 1] * by + t[0, 2])) / w
-        t_ = (t[1, 0] * bx + (t[1, 1] * by + t[1, 2])) / w
-        own = np.ones(s_.shape, bool)
-        if c > 0:
-            own &= s_ >= -eps
-        if c < cols - 2:
-            own &= s_ <= 1 + eps
-        if r > 0:
-            own &= t_ >= -eps
-        if r < rows - 2:
-            own &= t_ <= 1 + eps
-        if not own.any():
+        by = ys[i0:i1]
+        j0, j1 = _row_intervals(T[k], by, x_min, ps, nx, free)
+        ok = j1 >= j0
+        if not ok.any():
             continue
+        rs = np.flatnonzero(ok)
+        by = by[rs[0] : rs[-1] + 1]
+        j0, j1 = j0[rs[0] : rs[-1] + 1], j1[rs[0] : rs[-1] + 1]
+        i0, i1 = i0 + rs[0], i0 + rs[-1] + 1
+        a, b = int(j0.min()), int(j1.max()) + 1
+        bx = xs[a:b]
+        own = (jj[None, a:b] >= j0[:, None]) & (jj[None, a:b] <= j1[:, None])
         h = H[k]
-        w = h[2, 0] * bx + (h[2, 1] * by + h[2, 2])
-        X = (h[0, 0] * bx + (h[0, 1] * by + h[0, 2])) / w
-        Y = (h[1, 0] * bx + (h[1, 1] * by + h[1, 2])) / w
-        np.copyto(mapx[i0:i1, j0:j1], X, where=own, casting="same_kind")
-        np.copyto(mapy[i0:i1, j0:j1], Y, where=own, casting="same_kind")
+        w = (h[2, 0] * bx).astype(np.float32)[None, :] + (h[2, 1] * by + h[2, 2]).astype(
+            np.float32
+        )[:, None]
+        X = (h[0, 0] * bx).astype(np.float32)[None, :] + (h[0, 1] * by + h[0, 2]).astype(
+            np.float32
+        )[:, None]
+        X /= w
+        Y = (h[1, 0] * bx).astype(np.float32)[None, :] + (h[1, 1] * by + h[1, 2]).astype(
+            np.float32
+        )[:, None]
+        Y /= w
+        np.copyto(mapx[i0:i1, a:b], X, where=own)
+        np.copyto(mapy[i0:i1, a:b], Y, where=own)
     return mapx, mapy
 
 
