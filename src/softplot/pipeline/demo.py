@@ -578,6 +578,7 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
                 dp = out_dir / f"{side}.detection.json"
                 dp.write_text(json.dumps(s["det"], indent=1) + "\n", encoding="utf-8")
                 o[f"{side}_detection"] = str(dp)
+        o.update(_write_points(out_dir, pts, scans, true_pixel, measured_photo, stereo))
         res.seconds = time.perf_counter() - t_start
         o["report"] = str(_report(out_dir / "report.html", res, cfg, pair, scans, stereo,
                                   feats, pts, chk_err, ao, ro))
@@ -590,6 +591,51 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
     bar.close()
     res.seconds = time.perf_counter() - t_start
     return res
+
+
+def _write_csv(path: Path, header: list[str], rows) -> str:
+    import csv
+
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for r in rows:
+            w.writerow([f"{v:.6f}" if isinstance(v, float) else v for v in r])
+    return str(path)
+
+
+def _write_points(out_dir: Path, pts, scans, true_pixel, measured_photo, stereo) -> dict:
+    """CSV files for the README tour: the operator's pointings and the control.
+
+    ``points-left.csv``, ``points-right.csv``: name,x,y in pixels of each scan (tie ``T*``,
+    control ``C*``, check ``K*``: the exact truth pixels standing in for the operator);
+    ``control.csv``, ``check.csv``: name,X,Y,Z object m; ``check-photo.csv``:
+    name,x1,y1,x2,y2 photo mm of the check points through the film corrections;
+    ``photos.csv``: photo,X0,Y0,Z0,omega,phi,kappa,c (degrees, mm) of the oriented pair.
+    """
+    names = {k: [f"{p}{i + 1}" for i in range(len(pts[k]))]
+             for k, p in (("tie", "T"), ("control", "C"), ("check", "K"))}
+    allp = np.vstack([pts["tie"], pts["control"], pts["check"]])
+    alln = names["tie"] + names["control"] + names["check"]
+    o = {}
+    for k, side in enumerate(("left", "right")):
+        px = true_pixel(k, allp)
+        rows = [[n, *map(float, q)] for n, q in zip(alln, px, strict=True)]
+        o[f"points_{side}"] = _write_csv(out_dir / f"points-{side}.csv", ["name", "x", "y"], rows)
+    for k in ("control", "check"):
+        o[k] = _write_csv(out_dir / f"{k}.csv", ["name", "X", "Y", "Z"],
+                          [[n, *map(float, q)]
+                           for n, q in zip(names[k], pts[k], strict=True)])
+    p1, p2 = measured_photo(0, pts["check"]), measured_photo(1, pts["check"])
+    o["check_photo"] = _write_csv(
+        out_dir / "check-photo.csv", ["name", "x1", "y1", "x2", "y2"],
+        [[n, *map(float, a), *map(float, b)]
+         for n, a, b in zip(names["check"], p1, p2, strict=True)])
+    o["photos"] = _write_csv(
+        out_dir / "photos.csv", ["photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c"],
+        [[p.name, *map(float, p.X0), *map(float, np.rad2deg(p.angles)), float(p.c)]
+         for p in (stereo.left, stereo.right)])
+    return o
 
 
 def _report(path, res: DemoResult, cfg, pair, scans, stereo, feats, pts, chk_err, ao, ro):
