@@ -337,7 +337,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         else:
             reason[i] = fine.reason[k] or "not found"
 
-    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, shape.width)
+    sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, sigma)
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -384,37 +385,58 @@ def _transform_json(Hm, rms, n) -> dict:
     }
 
 
-def _reject_outliers(film, xy, status, reason, H0, line_px):
+def _local_prediction(film, r, k_max=16):
+    """Leave-one-out prediction of each residual from a local quadratic fit to its neighbours.
+
+    ``film`` (M, 2) mm, ``r`` (M, 2) px. A smooth film deformation is locally quadratic to a
+    good approximation; the fit uses the ``k`` nearest other marks (weights ``1/(1 + d^2)`` with
+    ``d`` in units of the median neighbour distance). Returns the predicted residuals (M, 2).
+    """
+    M = len(film)
+    k = min(k_max, M - 1)
+    d, j = cKDTree(film).query(film, k=k + 1)
+    d, j = d[:, 1:], j[:, 1:]
+    unit = float(np.median(d[:, 0])) or 1.0
+    dx = (film[j] - film[:, None, :]) / unit  # (M, k, 2)
+    nparam = 6 if k >= 9 else 3
+    cols = [np.ones((M, k)), dx[..., 0], dx[..., 1]]
+    if nparam == 6:
+        cols += [dx[..., 0] ** 2, dx[..., 0] * dx[..., 1], dx[..., 1] ** 2]
+    D = np.stack(cols, -1)  # (M, k, p)
+    w = 1.0 / (1.0 + (d / unit) ** 2)
+    Dw = D * w[..., None]
+    N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(nparam)
+    rhs = np.matmul(Dw.transpose(0, 2, 1), r[j])  # (M, p, 2)
+    coef = np.linalg.solve(N, rhs)
+    return coef[:, 0, :]
+
+
+def _reject_outliers(film, xy, status, reason, H0, sigma):
     """Refit the global model to the measured marks; flag marks that disagree with it.
 
-    A smooth film deformation moves neighbouring crosses alike, so each residual is compared
-    with the inverse-distance interpolation of its neighbours' residuals (leave-one-out); a
-    departure beyond ``max(5 * robust sigma, 0.5 * line width)`` is an outlier. Repeated until
-    nothing changes. Modifies ``status`` and ``reason`` in place.
+    A smooth film deformation moves neighbouring crosses alike, so each residual against the
+    projective model is compared with a leave-one-out local quadratic fit to its neighbours'
+    residuals; a departure beyond ``max(6 * robust spread, 4 * its own sigma, 0.03 px)`` is an
+    outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
+    worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
     """
     Hm = H0
-    for _ in range(5):
+    n_max = max(1, len(film) // 10)
+    for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
-        if m.sum() < 4:
+        if m.sum() < 8:
             break
         Hm = grid.projective_fit(film[m], xy[m])
         r = xy - grid.apply_h(Hm, film)
         idx = np.where(m)[0]
-        if len(idx) < 6:
-            break
-        k = min(5, len(idx) - 1)
-        d, j = cKDTree(film[idx]).query(film[idx], k=k + 1)
-        d, j = d[:, 1:], j[:, 1:]
-        w = 1.0 / np.maximum(d, 1e-6) ** 2
-        loo = (r[idx][j] * w[..., None]).sum(1) / w.sum(1)[:, None]
-        dev = np.hypot(*(r[idx] - loo).T)
-        mad = 1.4826 * np.median(dev)
-        thr = max(5.0 * mad, 0.5 * line_px, 0.5)
+        pred = _local_prediction(film[idx], r[idx])
+        dev = np.hypot(*(r[idx] - pred).T)
+        spread = 1.4826 * np.median(dev)
+        thr = np.maximum(max(6.0 * spread, 0.03), 4.0 * np.nan_to_num(sigma[idx], nan=1.0))
         bad = dev > thr
         if not bad.any():
             break
-        # reject only the worst one per round (an outlier also spoils its neighbours' values)
-        worst = idx[np.argmax(np.where(bad, dev, -1))]
+        worst = idx[int(np.argmax(np.where(bad, dev / thr, -1.0)))]
         status[worst] = "rejected"
         reason[worst] = "outlier against the global model and its neighbours"
     m = np.array([s == "measured" for s in status])

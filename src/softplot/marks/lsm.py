@@ -2,14 +2,18 @@
 
 Model of the grey values ``g`` of a mark's pixels ``p = (x, y)`` (pixel system)::
 
-    g(p) = a + b * T(A @ (p - c); s) + gx * (x - x_r) + gy * (y - y_r)
+    g(p) = B(p) * (1 - T) + (a + b) * T,     B(p) = a + gx * (x - x_r) + gy * (y - y_r)
 
-with ``T`` the analytic blurred mark of :mod:`softplot.marks.template` (1 on the mark, 0 off
-it), ``c`` its centre (px), ``A`` the 2x2 pixel -> mark-frame affine (rotation, scale,
-anisotropy, shear), ``s`` the edge blur (px), ``a``, ``b`` the radiometric offset and gain (the
-sign of ``b`` is the polarity: negative for dark marks) and ``gx``, ``gy`` a background tilt
-(reference ``(x_r, y_r)``: the initial centre). 11 parameters per mark, solved by Gauss-Newton
-for all marks at once (arrays of shape (N, P) for N marks of up to P pixels each).
+with ``T = T(A @ (p - c); s)`` the analytic blurred mark of :mod:`softplot.marks.template`
+(1 on the mark, 0 off it), ``c`` its centre (px), ``A`` the 2x2 pixel -> mark-frame affine
+(rotation, scale, anisotropy, shear), ``s`` the Gaussian edge blur (px; the square pixel
+footprint is modelled exactly across the bars), ``B`` the background under the mark (level
+``a`` and tilt ``gx``, ``gy`` about the reference ``(x_r, y_r)``, the rounded initial centre)
+and ``a + b`` the level of the mark itself: reseau crosses and fiducials are opaque, they
+*replace* the scene rather than add to it, so a scene gradient does not leak into the mark
+(the sign of ``b`` is the polarity: negative for dark marks). 11 parameters per mark, solved by
+Gauss-Newton for all marks at once (arrays of shape (N, P) for N marks of up to P pixels
+each).
 
 Robustness: the first iterations use a wide blur (``s`` fixed large) to widen the capture range;
 then all parameters are free and pixel weights follow Tukey's biweight on the residuals scaled by
@@ -44,8 +48,10 @@ class LSMResult:
         Pixel -> mark-frame affine.
     s : (N,) float
         Edge blur (px).
-    offset, gain : (N,) float
-        Radiometric offset ``a`` and gain ``b`` (grey units; ``b < 0`` for dark marks).
+    offset : (N,) float
+        Background level correction ``a`` (grey units).
+    gain : (N,) float
+        Contrast: mark level minus the background under the mark (``< 0`` for dark marks).
     cov : (N, 2, 2) float
         Covariance of the centre (px^2).
     sigma0 : (N,) float
@@ -53,8 +59,8 @@ class LSMResult:
     noise : (N,) float
         Robust (MAD) standard deviation of the residuals (grey units).
     score : (N,) float
-        Correlation of data and fitted template over the mark's pixels (-1..1; sign relative to
-        the fitted gain, i.e. positive when the mark looks like the model).
+        Correlation of the data with the fitted mark over the mark's pixels, the fitted
+        background removed from both (near 1 when the mark looks like the model).
     support : (N, K) float
         Fraction of well-fitting pixels (weight > 0.5) in each of K parts of the mark (the 4
         arms of a cross; 1 part for dots and circles).
@@ -112,11 +118,12 @@ def _parts(shape: MarkShape, u, v) -> np.ndarray:
     return np.where(core, -1, part).astype(np.int8)
 
 
-def _gather(patches, origin, ref, c, A, shape, margin):
+def _gather(patches, origin, ref, c, A, shape, margin, background=None):
     """Pick each mark's relevant pixels from its patch into padded (N, P) arrays.
 
-    Returns ``(X, Y, G, valid)``: pixel coordinates relative to ``ref`` (float32), grey
-    values (float32, 0 where padded) and the validity mask. Valid pixels come first in each row.
+    Returns ``(X, Y, G, valid, S)``: pixel coordinates relative to ``ref`` (float32), grey
+    values (float32, 0 where padded), the validity mask (valid pixels come first in each row)
+    and the scene background estimate under the mark (zeros without ``background``).
     """
     n, h, w = patches.shape
     off = (origin - ref).astype(np.float32)
@@ -139,10 +146,16 @@ def _gather(patches, origin, ref, c, A, shape, margin):
     take = lambda a: np.take_along_axis(np.ascontiguousarray(a).reshape(n, -1), order, 1)  # noqa: E731
     G = take(patches)
     G[~valid] = 0.0
-    return take(X), take(Y), G, valid
+    if background is None:
+        S = np.zeros_like(G)
+    else:
+        S = take(background)
+        S[~valid] = 0.0
+    return take(X), take(Y), G, valid, S
 
 
 def _tukey(r, scale):
+    """Tukey biweight weights for residuals ``r`` (N, P) with per-row ``scale``."""
     t = r / (4.685 * scale[:, None])
     return np.where(np.abs(t) < 1.0, (1.0 - t * t) ** 2, 0.0).astype(np.float32)
 
@@ -154,6 +167,20 @@ def _mad(r, valid):
     k = np.maximum(valid.sum(1) // 2, 0)
     med = ar[np.arange(len(k)), np.minimum(k, ar.shape[1] - 1)]
     return np.maximum(1.4826 * np.where(np.isfinite(med), med, 0.0), 1e-9)
+
+
+def _contrast(p, data, T=None):
+    """Mark level minus the background under it (N,): the signed contrast of each mark."""
+    X, Y, _, valid, S = data
+    bg = S + p[:, 9:10].astype(np.float32) * X + p[:, 10:11].astype(np.float32) * Y
+    wt = valid.astype(np.float32) if T is None else T * valid
+    return p[:, 8] - (bg * wt).sum(1) / np.maximum(wt.sum(1), 1e-6)
+
+
+def _scale(r, valid, p, data):
+    """Residual scale for the robust weights: the MAD, floored at 1 % of the mark's contrast
+    (flat, saturated or quantised backgrounds have a MAD near 0 and would reject everything)."""
+    return np.maximum(_mad(r, valid), 0.01 * np.abs(_contrast(p, data)) + 1e-4)
 
 
 def _model(p, data, shape, need_jac=True):
@@ -170,10 +197,11 @@ def _model(p, data, shape, need_jac=True):
     v = a10 * dx + a11 * dy
     ap = tuple(x[:, None] for x in aperture(q[:, 2:6].reshape(-1, 2, 2)))
     T, Tu, Tv, Ts = shape.evaluate(u, v, q[:, 6:7], aperture=ap)
-    M = q[:, 7:8] + q[:, 8:9] * T + q[:, 9:10] * X + q[:, 10:11] * Y
+    bg = data[4] + q[:, 9:10] * X + q[:, 10:11] * Y  # scene estimate + tilt, without ``a``
+    M = q[:, 7:8] + bg + (q[:, 8:9] - bg) * T
     if not need_jac:
         return M, T, u, v, None
-    b = q[:, 8:9]
+    b = q[:, 8:9] - bg  # the mark covers the background: dM/dT = mark - background
     bu, bv = b * Tu, b * Tv
     J = np.empty(X.shape + (_NP,), np.float32)
     J[..., 0] = -(bu * a00 + bv * a10)
@@ -185,14 +213,14 @@ def _model(p, data, shape, need_jac=True):
     J[..., 6] = b * Ts
     J[..., 7] = 1.0
     J[..., 8] = T
-    J[..., 9] = X
-    J[..., 10] = Y
+    J[..., 9] = X * (1.0 - T)
+    J[..., 10] = Y * (1.0 - T)
     return M, T, u, v, J
 
 
 def _init_radiometry(p, data, shape):
     """Offset and gain by linear regression of the data on the template (in place)."""
-    G, valid = data[2], data[3]
+    G, valid = data[2] - data[4], data[3]
     vf = valid.astype(np.float32)
     p[:, 9:11] = 0.0
     p[:, 7:9] = (0.0, 1.0)
@@ -204,6 +232,8 @@ def _init_radiometry(p, data, shape):
     var_t = np.maximum(((T - mT[:, None]) ** 2 * vf).sum(1), 1e-12)
     p[:, 8] = cov_tg / var_t
     p[:, 7] = mG - p[:, 8] * mT
+    # b is the mark level relative to ``a`` (not to the scene estimate): add the scene under it
+    p[:, 8] += (data[4] * T * vf).sum(1) / np.maximum((T * vf).sum(1), 1e-6)
 
 
 def _normal(J, w, r, active):
@@ -226,7 +256,7 @@ def _step(p, data, shape, active, robust):
     G, valid = data[2], data[3]
     M, T, u, v, J = _model(p, data, shape)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
-    w = _tukey(r, _mad(r, valid)) if robust else valid.astype(np.float32)
+    w = _tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32)
     w *= valid
     Nm, g = _normal(J, w, r, active)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
@@ -259,6 +289,7 @@ def lsm(
     max_iter: int = 10,
     tol: float = 2e-4,
     fit_shape: bool = True,
+    background: np.ndarray | None = None,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -286,6 +317,10 @@ def lsm(
         Convergence threshold on the centre update (px).
     fit_shape : bool
         Estimate the affine ``A`` (else keep ``A0``).
+    background : (N, h, w) float array, optional
+        An estimate of the scene under each mark (e.g. the patch with the thin mark removed by
+        a morphological opening or closing); the model's background is then this estimate
+        plus a constant and a tilt. Without it the background is a plane.
 
     Returns
     -------
@@ -312,7 +347,7 @@ def lsm(
 
     def gather(margin):
         return _gather(patches, origin, ref, p[:, 0:2] + ref, p[:, 2:6].reshape(n, 2, 2),
-                       shape, margin)
+                       shape, margin, background)
 
     # capture stage: wide blur, only position and radiometry, generous pixel margin
     if s_cap > s0:
@@ -340,7 +375,7 @@ def lsm(
             todo = todo[~done]
             if todo.size == 0:
                 break
-    X, Y, G, valid = data
+    X, Y, G, valid, Sb = data
     vf = valid.astype(np.float32)
     sw = np.maximum(vf.sum(1), 1.0)
     npix = valid.sum(1)
@@ -349,7 +384,7 @@ def lsm(
     M, T, u, v, J = _model(p, data, shape)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
     noise = _mad(r, valid)
-    w = (_tukey(r, noise) if robust else vf) * vf
+    w = (_tukey(r, _scale(r, valid, p, data)) if robust else vf) * vf
     Nm, _ = _normal(J, w, r, full)
     red = np.maximum(w.sum(1) - full.sum(), 1.0)
     sigma0 = np.sqrt((w * r * r).sum(1, dtype=float) / red)
@@ -359,14 +394,14 @@ def lsm(
         Ninv = np.linalg.pinv(Nm)
     cov = Ninv[:, 0:2, 0:2] * (sigma0**2)[:, None, None]
 
-    # correlation of data with the fitted template (background tilt removed)
-    Gb = G - p[:, 9:10] * X - p[:, 10:11] * Y
-    mT = (T * vf).sum(1) / sw
-    mG = (Gb * vf).sum(1) / sw
-    dT = (T - mT[:, None]) * vf
-    dG = (Gb - mG[:, None]) * vf
-    score = (dT * dG).sum(1) / np.sqrt(np.maximum((dT**2).sum(1) * (dG**2).sum(1), 1e-30))
-    score *= np.sign(p[:, 8])
+    # correlation of the data with the fitted mark, the fitted background removed from both
+    B = p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y
+    gain = _contrast(p, data, T)
+    dG = (G - B) * vf
+    dM = (M - B) * vf
+    dG -= (dG.sum(1) / sw)[:, None] * vf
+    dM -= (dM.sum(1) / sw)[:, None] * vf
+    score = (dG * dM).sum(1) / np.sqrt(np.maximum((dG**2).sum(1) * (dM**2).sum(1), 1e-30))
 
     # support of each part of the mark: share of well-fitting pixels near the drawn shape
     parts = _parts(shape, u, v)
@@ -383,7 +418,7 @@ def lsm(
         A=p[:, 2:6].reshape(n, 2, 2).copy(),
         s=p[:, 6].copy(),
         offset=p[:, 7].copy(),
-        gain=p[:, 8].copy(),
+        gain=gain,
         cov=cov,
         sigma0=sigma0,
         noise=noise,
