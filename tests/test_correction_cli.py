@@ -178,6 +178,13 @@ def test_compare_from_detection_json(scan, tmp_path, capsys):
     assert by["mesh-homography"]["loo_n"] == 120  # R3C4 is covered
 
 
+def test_compare_from_scan_runs_the_detector(scan, capsys):
+    code, so, se = _run(["correct", "compare", scan["img"], "-c", "rollei-6006",
+                         "--method", "affine", "--method", "mesh-homography"], capsys)
+    assert code == 0, se
+    assert "detecting marks" in se and "recommended: mesh-homography" in so
+
+
 def test_compare_limited_methods(scan, capsys):
     code, so, se = _run(["correct", "compare", scan["det"], "-c", "rollei-6006",
                          "--method", "affine", "--method", "poly2"], capsys)

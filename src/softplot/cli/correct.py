@@ -86,6 +86,10 @@ def _marks(scan_path: Path | None, camera, detection: Path | None):
         det = load_detection(detection)
         if scan is not None:
             det["width"], det["height"] = scan.width, scan.height
+        made_with = det.get("camera")
+        if made_with and made_with != camera.name:
+            click.echo(f"warning: {detection.name} was measured with camera {made_with!r}, "
+                       f"correcting with {camera.name!r}", err=True)
         return det, scan
     click.echo(f"detecting marks in {scan_path.name} ...", err=True)
     det = detect_marks(scan, camera)
