@@ -154,6 +154,8 @@ def test_photo_coordinates_through_the_interior_orientation():
     np.testing.assert_allclose(one, photo[:200], atol=1e-12)
     back, _ = fc.to_pixel(photo, "photo")
     assert np.abs(back - p).max() < 1e-6
+    one = np.array([fc.photo_to_pixel_point(x, y)[:2] for x, y in photo[:200]])
+    np.testing.assert_allclose(one, p[:200], atol=1e-6)
 
 
 def test_pentax_triangles_and_fiducial_camera():
@@ -201,8 +203,12 @@ def test_every_method_round_trips(method):
     p, _ = model.film_to_pixel(q)
     back, _ = model.pixel_to_film(p)
     assert np.abs(back - q).max() <= 1e-6
-    x, y, flag = model.pixel_to_film_point(*p[0])
-    np.testing.assert_allclose([x, y], back[0], atol=1e-9)
+    pf, flags = model.pixel_to_film(p[:50])
+    for i in range(50):
+        x, y, flag = model.pixel_to_film_point(*p[i])
+        np.testing.assert_allclose([x, y], pf[i], atol=1e-9)
+        assert flag == flags[i]
+    assert set(flags[:50]) == {0, 1}  # points inside and outside the reseau
 
 
 @pytest.mark.parametrize("method", ["mesh", "mesh-affine", "projective"])

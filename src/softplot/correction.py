@@ -228,6 +228,11 @@ class FilmCorrection:
                 flag = FLAG_OUTSIDE_IMAGE
         return px, py, flag
 
+    def photo_to_pixel_point(self, x: float, y: float) -> tuple[float, float, int]:
+        """One photo point (mm) -> (pixel x, pixel y, flag): plain floats (drive-to)."""
+        fx, fy = self.interior.photo_to_film_point(x, y)
+        return self.model.film_to_pixel_point(fx, fy)
+
     def describe(self) -> str:
         return f"{self.model.describe()}; interior: {self.interior.describe()}"
 

@@ -281,8 +281,11 @@ class GlobalModel(CorrectionModel):
             X = (m[0] * x + m[1] * y + m[2]) / w
             Y = (m[3] * x + m[4] * y + m[5]) / w
         else:
-            X, Y = self.transform.forward([[x, y]])[0].tolist()
-        flag = int(self._flags_pixel(np.array([[x, y]], float))[0])
+            X, Y = self.transform.forward([[x, y]] * self._flip)[0].tolist()
+        if isinstance(self._area, MeshModel):
+            flag = self._area.pixel_to_film_point(x, y)[2]
+        else:
+            flag = int(self._flags_pixel(np.array([[x, y]], float))[0])
         return X, Y, flag
 
     def film_to_pixel_point(self, x, y):

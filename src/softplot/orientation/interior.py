@@ -241,9 +241,36 @@ class InteriorOrientation:
         return xb - xb * f, yb - yb * f
 
     def photo_to_film_point(self, x: float, y: float) -> tuple[float, float]:
-        """One photo point (mm) -> film (mm)."""
-        X, Y = self.photo_to_film(np.array([[x, y]], float))[0].tolist()
-        return X, Y
+        """One photo point (mm) -> film (mm): Newton's method on plain floats."""
+        if self.model == "none":
+            return x + self.x0, y + self.y0
+        if self.model == "radial-table":
+            X, Y = self.photo_to_film(np.array([[x, y]], float))[0].tolist()
+            return X, Y
+        k1, k2, k3 = self.k
+        p1, p2 = self.p
+        b1, b2 = self.b
+        xb, yb = float(x), float(y)
+        for _ in range(20):
+            r2 = xb * xb + yb * yb
+            F = r2 * (k1 + r2 * (k2 + r2 * k3))
+            G = 2 * k1 + r2 * (4 * k2 + 6 * k3 * r2)
+            dx = xb * F + p1 * (r2 + 2 * xb * xb) + 2 * p2 * xb * yb + b1 * xb + b2 * yb
+            dy = yb * F + 2 * p1 * xb * yb + p2 * (r2 + 2 * yb * yb)
+            fx = xb - dx - x
+            fy = yb - dy - y
+            j00 = 1.0 - (F + G * xb * xb + 6 * p1 * xb + 2 * p2 * yb + b1)
+            j01 = -(G * xb * yb + 2 * p1 * yb + 2 * p2 * xb + b2)
+            j10 = -(G * xb * yb + 2 * p1 * yb + 2 * p2 * xb)
+            j11 = 1.0 - (F + G * yb * yb + 2 * p1 * xb + 6 * p2 * yb)
+            det = j00 * j11 - j01 * j10
+            sx = (j11 * fx - j01 * fy) / det
+            sy = (-j10 * fx + j00 * fy) / det
+            xb -= sx
+            yb -= sy
+            if abs(sx) <= 1e-13 and abs(sy) <= 1e-13:
+                break
+        return xb + self.x0, yb + self.y0
 
     def describe(self) -> str:
         s = f"c={self.c:.4f} mm, principal point ({self.x0:+.4f}, {self.y0:+.4f}) mm, "
