@@ -1,0 +1,97 @@
+"""``softplot detect``: measure the reseau crosses / fiducial marks of one or more scans."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from softplot.errors import SoftplotError
+
+
+def _out_path(base: Path | None, stem: str, many: bool, suffix: str) -> Path | None:
+    if base is None:
+        return None
+    if not many:
+        return base
+    return base.with_name(f"{base.stem}-{stem}{suffix}")
+
+
+@click.command("detect")
+@click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--camera", required=True, help="Built-in camera name or certificate TOML.")
+@click.option("--dpi", type=float, default=None, help="Scan resolution (default: the file's, "
+              "else estimated from the image).")
+@click.option("--polarity", type=click.Choice(["auto", "positive", "negative"]),
+              default="auto", show_default=True,
+              help="positive: dark marks (print); negative: bright marks (film negative).")
+@click.option("--rotate", type=click.Choice(["0", "90", "180", "270"]), default="0",
+              show_default=True, help="The photo is turned this much counter-clockwise in the "
+              "scan (residual rotations of +-20 degrees are found automatically).")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
+              help="Write the result JSON here (one scan).")
+@click.option("--out-dir", type=click.Path(file_okay=False), default=None,
+              help="Write DIR/<scan stem>.json for every scan.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="QC plot PNG (several scans: <name>-<scan stem>.png).")
+@click.option("--micmac", type=click.Path(file_okay=False), default=None,
+              help="Write MicMac MeasuresIm-<image>.xml into this folder.")
+@click.pass_context
+def command(ctx, scans, camera, dpi, polarity, rotate, json_out, out_dir, plot, micmac):
+    """Detect and measure the reseau crosses or fiducial marks of SCAN...
+
+    Prints one summary line per scan; the result JSON (keys of issue 3: image, camera, width,
+    height, dpi, polarity, marks, transform, rms_px, warnings) goes to --json or --out-dir.
+    A bad scan is reported in one line and the others are still processed (exit code 2).
+    """
+    from softplot.camera import load_camera
+    from softplot.io import load_scan
+    from softplot.marks import detect
+    from softplot.marks.micmac import write_measures_im
+    from softplot.marks.qc import plot_qc
+
+    cam = load_camera(camera)
+    many = len(scans) > 1
+    if json_out and many:
+        raise SoftplotError("--json takes one scan; use --out-dir DIR for several")
+    inputs = {Path(s).resolve() for s in scans}
+    for o in (json_out, plot):
+        if o and Path(o).resolve() in inputs:
+            raise SoftplotError(f"{o}: is an input scan; refusing to overwrite it")
+    failed = 0
+    iterator = scans
+    if many and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        iterator = tqdm(scans, desc="detect", unit="scan")
+    for s in iterator:
+        p = Path(s)
+        try:
+            sc = load_scan(p)
+            det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=float(rotate))
+            doc = det.to_json()
+            if out_dir:
+                d = Path(out_dir)
+                d.mkdir(parents=True, exist_ok=True)
+                target = d / f"{p.stem}.json"
+                if target.resolve() in inputs:
+                    raise SoftplotError(f"{target}: is an input scan; refusing to overwrite it")
+                target.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+            if json_out:
+                Path(json_out).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+            pp = _out_path(Path(plot) if plot else None, p.stem, many, ".png")
+            if pp is not None:
+                plot_qc(det, sc, pp)
+            if micmac:
+                write_measures_im(det, micmac)
+            click.echo(det.summary())
+        except SoftplotError as exc:
+            if not many:
+                raise
+            failed += 1
+            click.echo(f"softplot: error: {exc}", err=True)
+    if failed:
+        click.echo(f"softplot: {failed} of {len(scans)} scans failed", err=True)
+        ctx.exit(2)
