@@ -22,6 +22,7 @@ COMMANDS = [
     "synth",
     "demo",
     "info",
+    "detect",
     "restitute",
     "motors",
     "plot",
