@@ -190,6 +190,13 @@ def test_raw_plate_uses_the_corner_crosses():
     marks = _marks(cam, tm)
     m = build_model("raw-plate", marks)
     assert sorted(m.names) == sorted(["R0C0", "R0C10", "R10C10", "R10C0"])
+    assert m.flip_y
+    # a mirrored scan (film seen from its back): the similarity fits without the flip
+    px = marks.grid_pixel.copy()
+    px[..., 0] = 6000.0 - px[..., 0]
+    mm = build_model("raw-plate", ReferenceMarks(marks.grid_film, px))
+    assert not mm.flip_y
+    assert mm.transform.rms == pytest.approx(m.transform.rms, rel=1e-6)
     m2 = build_model("raw-plate", marks.without(["R0C0"]))
     assert "R0C1" in m2.names or "R1C0" in m2.names or "R1C1" in m2.names
     assert len(m2.names) == 4

@@ -13,7 +13,8 @@ Methods (:data:`METHODS`; ``docs/correction.md`` compares them):
 ``mesh-homography`` one homography per reseau quad
 ``mesh-bilinear``   bilinear interpolation per reseau quad
 ``raw-plate``       a similarity through the 4 corner crosses (or all fiducials): "raw plate";
-                    the pixel y axis is reversed first (pixel y down, film y up)
+                    on the pixel y axis reversed (pixel y down, film y up) unless the scan
+                    is mirrored (whichever fits better)
 ``raw-plate-affine`` the same with an affine
 ``affine``          one affine over all crosses (fiducials without a reseau), least squares
 ``projective``      one homography over all crosses
@@ -378,9 +379,16 @@ def build_model(method: str, marks: ReferenceMarks, area=True) -> CorrectionMode
         raise SoftplotError(
             f"method {method} needs at least {need} measured {what}, got {f.shape[0]}"
         )
-    flip = kind == "similarity"
+    flip = False
     try:
-        T = fit_transform(kind, p * np.array([1.0, -1.0 if flip else 1.0]), f)
+        T = fit_transform(kind, p, f)
+        if kind == "similarity":
+            # a similarity cannot mirror: the y-down pixel plane of an ordinary scan maps onto
+            # the y-up film plane with a reflection, a scan of the film seen from its back
+            # without one; keep whichever fits
+            Tf = fit_transform(kind, p * np.array([1.0, -1.0]), f)
+            if not (T.rms <= Tf.rms):
+                T, flip = Tf, True
     except SoftplotError as exc:
         raise SoftplotError(f"method {method}: {exc}") from None
     if area is True:
