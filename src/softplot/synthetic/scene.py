@@ -31,15 +31,31 @@ SCENES = ("none", "texture", "busy")
 def _fractal(
     shape: tuple[int, int], rng: np.random.Generator, octaves: tuple[int, ...]
 ) -> np.ndarray:
-    """Zero-mean, unit-std fractal noise raster of ``shape`` (rows, cols), float32."""
+    """Zero-mean, unit-std fractal noise raster of ``shape`` (rows, cols), float32.
+
+    Octave ``k`` has ``octaves[k]`` random cells across the longer side and weight 0.75^k;
+    octaves are summed at a resolution of 8 px per cell of the finest one so far, and the
+    sum is resized once to the full raster.
+    """
     ny, nx = shape
-    out = np.zeros(shape, np.float32)
+    big = max(ny, nx)
+    acc = None
     for k, cells in enumerate(octaves):
-        cy = max(2, int(round(cells * ny / max(ny, nx)))) + 3
-        cx = max(2, int(round(cells * nx / max(ny, nx)))) + 3
+        cy = max(2, int(round(cells * ny / big))) + 3
+        cx = max(2, int(round(cells * nx / big))) + 3
         grid = rng.standard_normal((cy, cx)).astype(np.float32)
-        layer = cv2.resize(grid, (nx, ny), interpolation=cv2.INTER_CUBIC)
-        out += layer * np.float32(0.75**k)
+        size = (min(nx, 8 * cx), min(ny, 8 * cy))  # (width, height) for OpenCV
+        layer = cv2.resize(grid, size, interpolation=cv2.INTER_CUBIC)
+        # soften the interpolation's grid-aligned ridges (about half a cell)
+        sig = 0.5 * size[0] / cx
+        layer = cv2.GaussianBlur(layer, (0, 0), sig) * np.float32(0.75**k)
+        if acc is None:
+            acc = layer
+        else:
+            if acc.shape[::-1] != size:
+                acc = cv2.resize(acc, size, interpolation=cv2.INTER_LINEAR)
+            acc += layer
+    out = cv2.resize(acc, (nx, ny), interpolation=cv2.INTER_LINEAR) if acc.shape != shape else acc
     out -= out.mean()
     sd = float(out.std())
     return out / np.float32(sd if sd > 0 else 1.0)
