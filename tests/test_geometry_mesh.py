@@ -213,3 +213,31 @@ def test_homography_mesh_edge_slip_is_small():
             slip.append(np.abs(p1[:, :2] / p1[:, 2:] - p2[:, :2] / p2[:, 2:]).max())
     # in pixels at 2400 dpi (0.05 px = 0.5 um; measured 0.018 px for this 40 um field)
     assert max(slip) < 0.05
+
+
+def test_calibrated_reseau_coordinates_are_used():
+    """A certificate with calibrated cross positions (a few um off the nominal grid): the mesh
+    takes the calibrated film coordinates, not the nominal ones."""
+    from dataclasses import replace
+
+    cam = load_camera("rollei-6006")
+    R = cam.reseau
+    rng = np.random.default_rng(4)
+    cal = R.nominal_film().reshape(R.rows, R.cols, 2) + rng.normal(0, 0.004, (R.rows, R.cols, 2))
+    cam = cam.with_(reseau=replace(R, calibrated=cal))
+    film = cam.reseau.film().reshape(R.rows, R.cols, 2)
+    np.testing.assert_allclose(film, cal)
+    w, h = cam.format_mm
+    tm = TruthMapping(Deformation.random(cam.format_mm, 40.0, 50.0, rng),
+                      Scanner(2400.0, 1.0, 0.0, 2700.0, 2650.0))
+    px = tm.film_to_pixel(film)
+    for kind in MESH_KINDS:
+        m = MeshModel(film, px, kind)
+        assert np.abs(m.pixel_to_film(px.reshape(-1, 2))[0] - film.reshape(-1, 2)).max() < 1e-9
+        q = _format_points(cam, 5000)
+        e = np.hypot(*(m.pixel_to_film(tm.film_to_pixel(q))[0] - q).T) * 1000
+        assert np.sqrt(np.mean(e**2)) < 2.0
+        # the nominal grid instead would leave the calibration's 4 um scatter in
+        mn = MeshModel(R.nominal_film().reshape(R.rows, R.cols, 2), px, kind)
+        en = np.hypot(*(mn.pixel_to_film(tm.film_to_pixel(q))[0] - q).T) * 1000
+        assert np.sqrt(np.mean(en**2)) > 2 * np.sqrt(np.mean(e**2))
