@@ -24,7 +24,7 @@ random field is seeded per block of rows), so the same seed gives the same pixel
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import cv2
@@ -132,7 +132,6 @@ class ScanSpec:
     jpeg_quality: int = 92
     tiff_compression: str | None = None
     subrows: int = 16
-    extra: dict = field(default_factory=dict, compare=False)
 
     def validate(self) -> "ScanSpec":
         """Check every field; raise :class:`SoftplotError` naming the first bad one."""
