@@ -43,6 +43,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.sparse
 import scipy.sparse.linalg
 
@@ -110,6 +111,10 @@ class SchurStructure:
         ``False`` for point coordinates held constant (a datum or a height-only tie).
     dense_limit : int
         Largest ``n_cam`` solved by dense Cholesky; beyond, sparse LU (SuperLU).
+    sparse_above, sparse_density : int, float
+        Above ``sparse_above`` camera-side unknowns, a reduced system whose share of
+        co-visible group pairs is below ``sparse_density`` (an aerial block) is solved by
+        sparse LU even when it is small enough for the dense path.
     tilde_limit : float
         Largest ``(n_cam + 1) * 3 n_pts`` for which ``W V^-1 W'`` may be one dense product
         (chosen when cheaper than the pair GEMMs: many rays per point, few cameras).
@@ -126,6 +131,8 @@ class SchurStructure:
         point_free=None,
         dense_limit: int = 4000,
         tilde_limit: float = 2e7,
+        sparse_above: int = 800,
+        sparse_density: float = 0.2,
     ) -> None:
         self.n_cam = int(n_cam)
         self.n_pts = int(n_pts)
@@ -151,7 +158,7 @@ class SchurStructure:
             if point_free is None
             else np.asarray(point_free, bool).reshape(self.n_pts, 3)
         )
-        self.dense = self.n_cam <= dense_limit
+        self._dense_limit = dense_limit
         #: observation -> point index with the dummy point ``n_pts`` for "none"
         self.pt_ext = np.where(self.obs_point < 0, self.n_pts, self.obs_point)
         #: observation -> camera-side columns, (m, k), dummy ``n_cam`` for constant slots
@@ -159,6 +166,12 @@ class SchurStructure:
         self._build_groups()
         self._build_pairs()
         self._build_tilde(tilde_limit)
+        #: share of the group pairs that are co-visible (block density of S)
+        self.block_density = self.n_pair_blocks / max(self.G * (self.G + 1) / 2, 1)
+        # dense Cholesky while small; sparse LU for large, sparse reduced systems (blocks)
+        self.dense = self.n_cam <= dense_limit and not (
+            self.n_cam > sparse_above and self.block_density < sparse_density
+        )
 
     # -- observations by group (for U)
     def _build_groups(self) -> None:
@@ -558,7 +571,7 @@ class LMOptions:
     max_diagonal: float = 1e32
     min_relative_decrease: float = 1e-3
     progress: Callable[[dict], None] | None = None  # called with a dict after every iteration
-    single_thread_limit: int = 1500  # camera-side size up to which BLAS runs on one thread
+    single_thread_limit: int = 6000  # camera-side size up to which BLAS runs on one thread
 
 
 @dataclass
@@ -702,7 +715,11 @@ class NormalInverse:
     """
 
     def __init__(
-        self, lin: Linearization, chunk: int = 20000, dense_product_limit: float = 4e9
+        self,
+        lin: Linearization,
+        chunk: int = 20000,
+        dense_product_limit: float = 4e9,
+        dense_inverse_limit: int = 8000,
     ) -> None:
         self.dense_product_limit = dense_product_limit
         self.lin = lin
@@ -712,7 +729,9 @@ class NormalInverse:
         S, _, self.Vinv, self.Y = lin.reduced(0.0, 0.0)
         n = st.n_cam
         if n:
-            if st.dense:
+            if not st.dense and n <= dense_inverse_limit:
+                S = S.toarray()  # all of Qcc is wanted: a dense factor is faster than n solves
+            if isinstance(S, np.ndarray):
                 dg = np.diag(S).copy()
                 if np.any(dg <= 0):
                     raise SoftplotError("normal matrix singular: an unknown is not observed")
@@ -724,12 +743,20 @@ class NormalInverse:
                         "normal matrix singular: datum or a parameter undetermined"
                     ) from exc
                 self._solve_c = lambda b: scipy.linalg.cho_solve(cf, b * s[:, None]) * s[:, None]
+                # the whole inverse from the factor (LAPACK potri: ~n^3 / 3 more flops)
+                inv, info = scipy.linalg.lapack.dpotri(cf[0], lower=cf[1])
+                if info != 0:
+                    raise SoftplotError("normal matrix singular: datum or parameter undetermined")
+                inv = np.triu(inv) if not cf[1] else np.tril(inv)
+                inv = inv + inv.T - np.diag(np.diag(inv))
+                self._Qcc_direct = inv * s[:, None] * s[None, :]
             else:
                 s = 1.0 / np.sqrt(S.diagonal())
                 D = scipy.sparse.diags(s)
                 lu = scipy.sparse.linalg.splu((D @ S @ D).tocsc(), permc_spec="MMD_AT_PLUS_A")
                 self._solve_c = lambda b: lu.solve(b * s[:, None]) * s[:, None]
-            self.Qcc = self._solve_c(np.eye(n))
+            Q = getattr(self, "_Qcc_direct", None)
+            self.Qcc = self._solve_c(np.eye(n)) if Q is None else Q
             self.Qcc = 0.5 * (self.Qcc + self.Qcc.T)
             if not np.all(np.isfinite(self.Qcc)):
                 raise SoftplotError("normal matrix singular: datum or a parameter undetermined")

@@ -53,10 +53,15 @@ def film_from_object(XYZ, X0, M, intr):
     xy : ndarray (N, 2)
         Film mm.
     in_front : ndarray of bool (N,)
+        In front of the camera and within 1 m of the principal point (else ``xy`` is NaN).
     """
     u = (np.asarray(XYZ, float) - X0) @ M.T
     c, x0, y0 = intr[:3]
-    px, py = -c * u[:, 0] / u[:, 2], -c * u[:, 1] / u[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        px, py = -c * u[:, 0] / u[:, 2], -c * u[:, 1] / u[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        front = (u[:, 2] < 0) & (np.abs(px) < 1e3) & (np.abs(py) < 1e3)
+    px, py = np.where(front, px, 0.0), np.where(front, py, 0.0)  # behind / far out: not imaged
     xb, yb = px.copy(), py.copy()
     for _ in range(50):  # xb - d(xb) = px
         dx, dy = _displacement(xb, yb, intr)
@@ -65,7 +70,9 @@ def film_from_object(XYZ, X0, M, intr):
             xb, yb = nxb, nyb
             break
         xb, yb = nxb, nyb
-    return np.column_stack([xb + x0, yb + y0]), u[:, 2] < 0
+    xy = np.column_stack([xb + x0, yb + y0])
+    xy[~front] = np.nan
+    return xy, front
 
 
 def look_at(C, target, roll=0.0, up=(0.0, 0.0, 1.0)):

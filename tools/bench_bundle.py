@@ -1,0 +1,123 @@
+"""Benchmark of the sparse bundle adjustment (figures go to docs/benchmarks.md).
+
+Run:  .venv/bin/python tools/bench_bundle.py [--repeat 3] [--json out.json] [--quick]
+
+1. BAL Ladybug (problem-49-7776-pre): seconds from the given start to convergence (Ceres
+   default tolerances) and to the first cost <= 1.34e4, final cost, iterations.
+2. Synthetic 100-model aerial block (5 strips x 21 photos, 60 % / 30 % overlap) with
+   self-calibration (c, x0, y0, k1 free): seconds of the adjustment incl. covariance blocks.
+3. Growth of the time with the block size: 10, 100 and 400 photos (same generator).
+
+Medians over ``--repeat`` runs. The machine is shared: say so when quoting the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softplot.adjust.bal import read_bal, solve_bal
+from softplot.orientation.bundle import bundle_adjust
+from softplot.orientation.bundle_init import initialize
+from softplot.synthetic.block import make_block
+
+LADYBUG = Path("/work/shared/data/bal/problem-49-7776-pre.txt")
+
+
+def bench_bal(repeat: int) -> dict:
+    prob = read_bal(LADYBUG)
+    runs = []
+    for _ in range(repeat):
+        r = solve_bal(prob)
+        hit = next((h["seconds"] for h in r.history if h["cost"] <= 1.34e4), None)
+        runs.append((r.seconds, hit, r.final_cost, r.iterations))
+    return {
+        "problem": LADYBUG.name,
+        "median_seconds": statistics.median(x[0] for x in runs),
+        "median_seconds_to_1.34e4": statistics.median(x[1] for x in runs if x[1] is not None),
+        "final_cost": runs[0][2],
+        "iterations": runs[0][3],
+        "runs": runs,
+    }
+
+
+def _block(strips, photos, seed=0):
+    net = make_block(n_strips=strips, photos_per_strip=photos, seed=seed)
+    net.intr_given[0, :3] = [152.0, 0.0, 0.0]
+    net.intr_given[0, 3] = 0.0
+    d = net.to_bundle_data(free=("c", "x0", "y0", "k1"))
+    initialize(d)
+    return net, d
+
+
+def bench_block(strips, photos, repeat: int) -> dict:
+    net, d = _block(strips, photos)
+    times, lm = [], []
+    res = None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = bundle_adjust(d)
+        times.append(time.perf_counter() - t0)
+        lm.append(res.seconds)
+    return {
+        "photos": len(d.photo_names),
+        "models": net.info["n_models"],
+        "points": len(d.point_names),
+        "observations": int(d.obs_photo.size),
+        "median_seconds": statistics.median(times),
+        "median_lm_seconds": statistics.median(lm),
+        "iterations": res.iterations,
+        "sigma0": res.sigma0,
+        "check_rms_m": res.check_rms(),
+    }
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--quick", action="store_true", help="skip the 400-photo block")
+    a = ap.parse_args(argv)
+    out = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
+        "load_average_at_start": os.getloadavg(),
+    }
+    if LADYBUG.is_file():
+        out["bal_ladybug"] = bench_bal(a.repeat)
+        b = out["bal_ladybug"]
+        print(
+            f"BAL ladybug: {b['median_seconds']:.2f} s to convergence "
+            f"({b['median_seconds_to_1.34e4']:.2f} s to <= 1.34e4), final cost "
+            f"{b['final_cost']:.6g}, {b['iterations']} iterations"
+        )
+    out["block_100_models"] = bench_block(5, 21, a.repeat)
+    b = out["block_100_models"]
+    print(
+        f"100-model block, self-calibration: {b['median_seconds']:.2f} s "
+        f"({b['photos']} photos, {b['observations']} observations, {b['iterations']} it)"
+    )
+    growth = []
+    for strips, photos in [(2, 5), (5, 20)] + ([] if a.quick else [(10, 40)]):
+        g = bench_block(strips, photos, a.repeat)
+        growth.append(g)
+        print(
+            f"  {g['photos']:4d} photos {g['observations']:6d} obs: {g['median_seconds']:.3f} s "
+            f"(LM {g['median_lm_seconds']:.3f} s, {g['iterations']} it)"
+        )
+    out["growth"] = growth
+    out["load_average_at_end"] = os.getloadavg()
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1, default=float) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()
