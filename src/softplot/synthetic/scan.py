@@ -682,7 +682,19 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     sig = spec.blur_sigma_px
     rad = int(math.ceil(4 * sig)) if sig > 0 else 0
     halo = rad + 1 if sig > 0 else 0
-    cu, cv = _film_maps(mapping, width, height)
+    flat = spec.scene == "none" and not spec.rgb  # no per-pixel film coordinates needed
+    if flat:  # the format's outline in pixels (1/16 px vertices, every ~0.5 mm of film)
+        n_side = int(max(fw, fh) / 0.5) + 2
+        t = np.linspace(-0.5, 0.5, n_side)
+        ring = np.concatenate([
+            np.column_stack([t * fw, np.full(n_side, fh / 2)]),
+            np.column_stack([np.full(n_side, fw / 2), -t * fh]),
+            np.column_stack([-t * fw, np.full(n_side, -fh / 2)]),
+            np.column_stack([np.full(n_side, -fw / 2), t * fh]),
+        ])
+        outline = mapping.film_to_pixel(ring)
+    else:
+        cu, cv = _film_maps(mapping, width, height)
     m_idx, m_col, m_row, m_val = sparse
     keep = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
     order = np.argsort(m_row[keep], kind="stable")
@@ -698,15 +710,21 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     for r0 in range(0, height, strip):
         r1 = min(height, r0 + strip)
         a0, a1 = max(0, r0 - halo), min(height, r1 + halo)
-        u, v = _rows_film(cu, cv, a0, a1)
-        g = scene.sample(u, v)
-        val = (level + contrast * g).astype(np.float32)
-        if val.ndim == 2:
-            val = val[:, :, None]
-        # unexposed border outside the format (soft edge, one pixel wide)
-        outside = np.maximum(np.abs(u) - fw / 2, np.abs(v) - fh / 2) * s
-        border = np.clip(0.5 + outside, 0.0, 1.0).astype(np.float32)[:, :, None]
-        val += (level - val) * border
+        # exposed scene inside the format, unexposed film (mark level) outside it
+        if flat:
+            inside = np.zeros((a1 - a0, width), np.uint8)
+            pts = np.round((outline - (0, a0)) * 16).astype(np.int32)
+            cv2.fillPoly(inside, [pts], 255, cv2.LINE_AA, 4)
+            val = (level + contrast * (inside.astype(np.float32) / np.float32(255)))[:, :, None]
+        else:
+            u, v = _rows_film(cu, cv, a0, a1)
+            g = scene.sample(u, v)
+            val = (level + contrast * g).astype(np.float32)
+            if val.ndim == 2:
+                val = val[:, :, None]
+            outside = np.maximum(np.abs(u) - fw / 2, np.abs(v) - fh / 2) * s  # soft edge, 1 px
+            border = np.clip(0.5 + outside, 0.0, 1.0).astype(np.float32)[:, :, None]
+            val += (level - val) * border
         # marks: exact coverage before the blur, or the exactly blurred marks after it
         if post_blur:
             lo, hi = np.searchsorted(m_row, [r0, r1])
