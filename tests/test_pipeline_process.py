@@ -84,3 +84,20 @@ def test_process_bad_input(scans, tmp_path, capsys):
     assert (res / "scan0.json").read_text() == '{"mine": 1}'
     err = capsys.readouterr()
     assert "Traceback" not in err.err + err.out
+
+
+def test_coarse_film_maps_match_the_exact_maps(scans):
+    """The flattening workaround for smooth global methods: same maps to < 1e-3 px."""
+    from softplot.correction import FilmCorrection, film_maps
+    from softplot.pipeline.process import coarse_film_maps
+
+    truth = json.loads(scans[1][0][1].read_text())
+    det = {"marks": [m for m in truth["marks"] if m["visible"]]}
+    for method in ("poly3", "projective", "affine"):
+        fc = FilmCorrection.from_detection("rollei-6006", det, method)
+        exact = film_maps(fc, 0.2)
+        fast = coarse_film_maps(fc, 0.2)
+        assert exact[2:] == fast[2:]
+        assert exact[0].shape == fast[0].shape
+        for a, b in zip(exact[:2], fast[:2], strict=True):
+            assert np.max(np.abs(a - b)) < 1e-3
