@@ -82,8 +82,10 @@ def test_batch_bad_input(tmp_path):
     (tmp_path / "b").mkdir()
     for d in ("a", "b"):
         (tmp_path / d / "x.tif").write_bytes(b"")
-    scans = expand([str(tmp_path / "**" / "*.tif")])
-    assert len(scans) == 2
+    (tmp_path / "a" / "x.film.tif").write_bytes(b"")  # an output of process --flatten
+    (tmp_path / "a" / "x.json").write_text("{}")
+    scans = expand([str(tmp_path / "**" / "*.tif"), str(tmp_path / "a" / "*")])
+    assert sorted(p.parent.name for p in scans) == ["a", "b"]
     from softplot.errors import SoftplotError
 
     with pytest.raises(SoftplotError, match="same name stem"):

@@ -65,14 +65,21 @@ class BatchReport:
         return "\n".join(lines)
 
 
+#: names a glob may match that are not scans (results, reports, flattened outputs)
+_NOT_SCANS = (".json", ".csv", ".html", ".md", ".txt", ".toml", ".tmp", ".part", ".film.tif")
+
+
 def expand(patterns: Iterable[str]) -> list[Path]:
-    """Scan paths named by glob patterns (recursive ``**`` allowed), sorted, de-duplicated."""
+    """Scan paths named by glob patterns (recursive ``**`` allowed), sorted, de-duplicated.
+
+    Results, reports and film-flattened images (``*.film.tif``) of earlier runs are left out.
+    """
     out: dict[str, Path] = {}
     for pat in patterns:
         hits = globmod.glob(pat, recursive=True) if globmod.has_magic(pat) else [pat]
         for h in hits:
             p = Path(h)
-            if p.is_file() and not p.name.endswith((".json", ".truth.json")):
+            if p.is_file() and not p.name.endswith(_NOT_SCANS):
                 out[str(p.resolve())] = p
     return [out[k] for k in sorted(out)]
 

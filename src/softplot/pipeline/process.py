@@ -413,7 +413,8 @@ def write_report(path, results: list[dict], title: str = "softplot process",
                 ax.plot(cx + (w["x"] - round(w["x"])), cy + (w["y"] - round(w["y"])), "r+")
                 ax.set_title(f"{w['name']}\n{w['residual_px']:.3f} px", fontsize=8)
                 ax.axis("off")
-            rep.figure(fig, "worst marks (largest residuals), red +: measured position")
+            rep.figure(fig, "worst marks (largest residuals against the projective film -> pixel "
+                            "model), red +: measured position")
         rep.table(["method", "params", "fit rms um", "LOO rms um", "LOO max um",
                    "checkerboard rms um", "note"],
                   [[m["method"], m.get("n_params"), m.get("fit_rms_um"), m.get("loo_rms_um"),
