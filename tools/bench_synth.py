@@ -23,6 +23,7 @@ CASES = [
     ("rollei-6006 1200 dpi, default spec", "rollei-6006", ScanSpec(dpi=1200)),
     ("rollei-6006 2400 dpi, default spec", "rollei-6006", ScanSpec(dpi=2400)),
     ("rollei-6006 2400 dpi, no deformation", "rollei-6006", ScanSpec(dpi=2400, deform_um=0)),
+    ("rollei-6006 2400 dpi, empty scene", "rollei-6006", ScanSpec(dpi=2400, scene="none")),
     ("rollei-6006 1200 dpi, busy, dust, 16 bit", "rollei-6006",
      ScanSpec(dpi=1200, scene="busy", dust=50, scratches=3, bits=16)),
 ]
