@@ -21,8 +21,9 @@ def _number(kind: type, name: str):
     return convert
 
 
-def _opt(name: str, kind: type, default, help_: str):
+def _opt(name: str, kind: type, default, help_: str, metavar: str | None = None):
     return click.option(f"--{name}", type=str, default=str(default), show_default=True,
+                        metavar=metavar or ("N" if kind is int else "X"),
                         callback=_number(kind, name), help=help_)
 
 
@@ -31,26 +32,26 @@ def _opt(name: str, kind: type, default, help_: str):
 @click.option("--camera", "camera", required=True, metavar="NAME|CERT.toml",
               help="Built-in camera name or certificate file.")
 @_opt("count", int, 1, "Number of scans (seeds S, S+1, ...).")
-@_opt("seed", int, 0, "Seed of the first scan; the same seed gives the same files.")
-@_opt("dpi", float, 1200, "Scan resolution, dots per inch.")
+@_opt("seed", int, 0, "Seed of the first scan; the same seed gives the same files.", "S")
+@_opt("dpi", float, 1200, "Scan resolution, dots per inch.", "D")
 @click.option("--negative", is_flag=True, help="Film negative: bright marks, inverted scene.")
-@_opt("blur", float, 0.8, "Scanner blur, Gaussian sigma in pixels.")
-@_opt("noise", float, 0.01, "Sensor noise sigma, fraction of full scale.")
-@_opt("grain", float, 0.0, "Film grain sigma, fraction of full scale.")
-@_opt("contrast", float, 0.5, "Mark-minus-background amplitude, fraction of full scale.")
+@_opt("blur", float, 0.8, "Scanner blur, Gaussian sigma in pixels.", "PX")
+@_opt("noise", float, 0.01, "Sensor noise sigma, fraction of full scale.", "SIGMA")
+@_opt("grain", float, 0.0, "Film grain sigma, fraction of full scale.", "SIGMA")
+@_opt("contrast", float, 0.5, "Mark-minus-background amplitude, fraction of full scale.", "C")
 @click.option("--scene", default="texture", show_default=True, metavar="none|texture|busy",
               help="Scene content.")
-@_opt("deform", float, 20.0, "Film deformation: largest displacement, micrometres.")
-@_opt("shrink", float, 0.0, "Uniform film shrinkage, ppm.")
-@_opt("rotate", float, 0.0, "Scanner rotation, degrees (counter-clockwise on screen).")
-@_opt("offset-x", float, 0.0, "Shift of the film in the scan, pixels (x).")
-@_opt("offset-y", float, 0.0, "Shift of the film in the scan, pixels (y).")
-@_opt("anisotropy", float, 0.0, "Scanner x/y scale difference, ppm.")
+@_opt("deform", float, 20.0, "Film deformation: largest displacement, micrometres.", "UM")
+@_opt("shrink", float, 0.0, "Uniform film shrinkage, ppm.", "PPM")
+@_opt("rotate", float, 0.0, "Scanner rotation, degrees (counter-clockwise on screen).", "DEG")
+@_opt("offset-x", float, 0.0, "Shift of the film in the scan, pixels (x).", "PX")
+@_opt("offset-y", float, 0.0, "Shift of the film in the scan, pixels (y).", "PX")
+@_opt("anisotropy", float, 0.0, "Scanner x/y scale difference, ppm.", "PPM")
 @_opt("dust", int, 0, "Dust particles and fibres.")
 @_opt("scratches", int, 0, "Scratches.")
 @_opt("cover", int, 0, "Marks wholly covered by opaque blobs.")
-@_opt("crop", float, 0.0, "Millimetres cut off the left and top edges (marks get cut).")
-@_opt("bits", int, 8, "Bits per sample: 8 or 16.")
+@_opt("crop", float, 0.0, "Millimetres cut off the left and top edges (marks get cut).", "MM")
+@_opt("bits", int, 8, "Bits per sample: 8 or 16.", "8|16")
 @click.option("--rgb", is_flag=True, help="Three channels (with --negative: orange mask).")
 @click.option("--format", "file_format", default="tif", show_default=True,
               metavar="tif|jpg|png", help="Image file format.")
