@@ -70,3 +70,16 @@ def test_prepare_out_dir_never_touches_user_files(tmp_path):
     f.write_text("")
     with pytest.raises(SoftplotError):
         prepare_out_dir(f)
+
+
+def test_demo_cli_bad_out(tmp_path, capsys):
+    from softplot.cli import main
+
+    f = tmp_path / "a-file"
+    f.write_text("user data")
+    with pytest.raises(SystemExit) as e:
+        main(["demo", "--out", str(f), "--quiet"])
+    assert e.value.code == 2
+    assert f.read_text() == "user data"
+    err = capsys.readouterr().err
+    assert "a-file" in err and "Traceback" not in err
