@@ -69,7 +69,7 @@ def command(outdir, camera, count, seed, dpi, negative, blur, noise, grain, cont
     from tqdm import tqdm
 
     from softplot.camera import load_camera
-    from softplot.synthetic import ScanSpec, scan_paths, write_scan
+    from softplot.synthetic import ScanSpec, default_stem, scan_paths, write_scan
 
     cam = load_camera(camera)
     if count < 1:
@@ -88,7 +88,7 @@ def command(outdir, camera, count, seed, dpi, negative, blur, noise, grain, cont
     seeds = list(range(seed, seed + count))
     if not overwrite:
         for sd in seeds:
-            for p in scan_paths(outdir, f"{cam.name}-{sd:04d}", spec.file_format):
+            for p in scan_paths(outdir, default_stem(cam.name, sd), spec.file_format):
                 if p.exists():
                     raise SoftplotError(f"{p}: exists; refusing to overwrite (use --overwrite)")
     for sd in tqdm(seeds, desc="synth", unit="scan", disable=count < 2, leave=False):

@@ -23,6 +23,7 @@ the deformation's curvature across the mark)),
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from softplot.camera import load_camera
@@ -35,11 +36,18 @@ __all__ = [
     "Deformation",
     "ScanSpec",
     "Scanner",
+    "default_stem",
     "TruthMapping",
     "render_scan",
     "scan_paths",
     "write_scan",
 ]
+
+
+def default_stem(camera_name: str, seed: int) -> str:
+    """File stem of a synthetic scan: ``<camera name>-<seed:04d>`` (file-name safe)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", camera_name).strip("._") or "camera"
+    return f"{safe}-{int(seed):04d}"
 
 
 def scan_paths(outdir: str | Path, stem: str, file_format: str) -> tuple[Path, Path]:
@@ -81,7 +89,7 @@ def write_scan(
     """
     cam = load_camera(camera)
     spec = (spec or ScanSpec()).validate()
-    stem = stem or f"{cam.name}-{int(seed):04d}"
+    stem = stem or default_stem(cam.name, seed)
     img_path, truth_path = scan_paths(outdir, stem, spec.file_format)
     if not overwrite:
         for p in (img_path, truth_path):
