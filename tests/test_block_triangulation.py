@@ -86,3 +86,16 @@ def test_bundle_block_with_self_calibration_and_check_points():
     assert chk["X"] < 0.1 and chk["Y"] < 0.1 and chk["Z"] < 0.3
     err = np.abs(b.intrinsics[0, :3] - net.intr_true[0, :3])
     assert np.all(err < 4 * b.intrinsics_std[0, :3])
+
+
+def test_block_initialised_without_any_exterior_orientation():
+    """Resection at the edge control, intersection, resection ... along the strips."""
+    net = make_block(n_strips=3, photos_per_strip=10, seed=4)
+    d = net.to_bundle_data(free=())
+    d.X0[:] = np.nan
+    d.angles[:] = np.nan
+    initialize(d)
+    assert np.abs(d.X0 - net.X0_true).max() < 20.0  # metres, at 1520 m flying height
+    b = bundle_adjust(d)
+    assert b.converged and 0.85 < b.sigma0 < 1.15
+    assert np.abs(b.X0 - net.X0_true).max() < 1.0
