@@ -78,6 +78,10 @@ def test_calibration_errors_are_consistent_with_their_std(seed):
     assert np.all(np.abs(z) < 3.5), z
     ze = (res.XYZ - net.XYZ_true) / res.XYZ_std
     assert np.sqrt(np.mean(ze**2)) < 1.5
+    # exterior orientation: positions and omega, phi, kappa (propagated from the increments)
+    da = np.mod(res.angles - net.angles_true + np.pi, 2 * np.pi) - np.pi
+    zo = np.hstack([res.X0 - net.X0_true, da]) / res.eo_std
+    assert np.sqrt(np.mean(zo**2)) < 1.5
 
 
 def test_weak_geometry_raises_correlation_warning():

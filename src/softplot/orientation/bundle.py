@@ -820,13 +820,14 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
         Ccc = var * Qcc
         cd = np.sqrt(np.clip(np.diag(Ccc), 0, None))
         ei = model.eo_idx
-        for f in range(F):
-            if ei[f, 0] < 0:
-                continue
-            eo_std[f, :3] = cd[ei[f, :3]]
-            Jang = _angle_jacobian(M[f])
-            ca = Jang @ Ccc[np.ix_(ei[f, 3:], ei[f, 3:])] @ Jang.T
-            eo_std[f, 3:] = np.sqrt(np.clip(np.diag(ca), 0, None))
+        act_f = np.flatnonzero(ei[:, 0] >= 0)
+        if act_f.size:
+            eo_std[act_f, :3] = cd[ei[act_f, :3]]
+            Jang = _angle_jacobian(M[act_f])  # (n, 3, 3)
+            rc = ei[act_f, 3:]
+            Cr = Ccc[rc[:, :, None], rc[:, None, :]]  # (n, 3, 3) rotation-increment blocks
+            ca = np.einsum("nij,njk,nlk->nil", Jang, Cr, Jang)
+            eo_std[act_f, 3:] = np.sqrt(np.clip(np.einsum("nii->ni", ca), 0, None))
         for c in range(C):
             act = model.in_idx[c] >= 0
             idx = model.in_idx[c, act]
@@ -915,15 +916,15 @@ def model_linearize(model, state):
 
 
 def _angle_jacobian(M):
-    """d(omega, phi, kappa) / d(rotation increment) at ``M`` (3x3, central differences)."""
+    """d(omega, phi, kappa) / d(rotation increment) at ``M`` (n, 3, 3): central differences."""
     h = 1e-7
-    J = np.empty((3, 3))
-    for i in range(3):
+    J = np.empty(M.shape[:-2] + (3, 3))
+    for i in range(3):  # three increments, vectorised over the photos
         e = np.zeros(3)
         e[i] = h
-        a = np.array(angles_from_matrix(Rotation.from_rotvec(e).as_matrix() @ M))
-        b = np.array(angles_from_matrix(Rotation.from_rotvec(-e).as_matrix() @ M))
-        J[:, i] = (np.mod(a - b + np.pi, 2 * np.pi) - np.pi) / (2 * h)
+        a = np.stack(angles_from_matrix(Rotation.from_rotvec(e).as_matrix() @ M), axis=-1)
+        b = np.stack(angles_from_matrix(Rotation.from_rotvec(-e).as_matrix() @ M), axis=-1)
+        J[..., :, i] = (np.mod(a - b + np.pi, 2 * np.pi) - np.pi) / (2 * h)
     return J
 
 
