@@ -230,22 +230,35 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         f = _reseau_factor(res.line_width_mm * ppm, npix)
         ov = coarse.overview(sc, f)
         _blank_check(ov, name)
-        # estimate from peak spacing with a template at the guessed scale
+        # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi
         shape_ov = cross_shape(cam, ppm / f)
         R, h = coarse.ncc_map(ov, shape_ov, 0.7, arm_half=min(0.5 * shape_ov.length, 6.0))
-        pk = coarse.find_peaks(R, h, min_dist=3.0, threshold=0.25,
-                               max_peaks=3 * res.count + 100)
-        sp = None
-        for sg in (1, -1):
+        pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.3 * min(res.pitch_x, res.pitch_y)
+                                                  * ppm / f),
+                               threshold=0.25, max_peaks=3 * res.count + 100)
+        best_g = None
+        signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
+        pmin = min(res.pitch_x, res.pitch_y)
+        for sg in signs:
             q = pk.select(pk.sign == sg)
-            s_ = grid.estimate_spacing(coarse.ov_to_full(q.xy, f))
-            if s_ is not None and (sp is None or len(q) > sp[1]):
-                sp = (s_, len(q))
-        if sp is None:
+            xy = coarse.ov_to_full(q.xy, f)
+            # candidate scales: the size-based guess (the scan may show more than the format)
+            # and the most frequent neighbour spacing of the strongest peaks (or its double,
+            # when peaks also sit half-way between crosses)
+            cands = [ppm, 0.9 * ppm, 0.8 * ppm]
+            sp = grid.estimate_spacing(xy[np.argsort(-q.score)[: max(int(1.5 * res.count), 8)]])
+            if sp is not None:
+                cands += [sp / pmin, 2.0 * sp / pmin]
+            for k in cands:
+                g0 = grid.fit_grid(xy, q.score, res, (sc.width, sc.height), px_per_mm=k,
+                                   rotate_deg=rotate_pix)
+                if g0 is not None and (best_g is None or g0.score > best_g.score):
+                    best_g = g0
+        if best_g is None or len(best_g.node) < max(4, 0.2 * res.count):
             raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
                                  f"found (expected {res.rows}x{res.cols} crosses at "
                                  f"{res.pitch_x} mm); give --dpi")
-        dpi = sp[0] / min(res.pitch_x, res.pitch_y) * MM_PER_INCH
+        dpi = best_g.px_per_mm * MM_PER_INCH
         del ov, R
     ppm = dpi / MM_PER_INCH
     need = (span_mm[0] * ppm * 0.5, span_mm[1] * ppm * 0.5)
@@ -298,7 +311,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     spread = float(np.sqrt(np.mean(np.sum(resid**2, 1)))) if len(resid) else 3.0
     radius_ov = max(2.0, (2.0 * spread + 2.0) / f)
     found_ov, val = _search_map(R, h, sign, coarse.full_to_ov(pred, f), radius_ov)
-    c0 = np.where(np.isfinite(found_ov), coarse.ov_to_full(found_ov, f), pred)
+    use = np.isfinite(found_ov).all(1) & (val >= 0.3)
+    c0 = np.where(use[:, None], coarse.ov_to_full(found_ov, f), pred)
     # affine of every cross: pixel -> mark frame (u along film x, v along film -y, nominal px)
     Jh = grid.h_jacobian(g.H, film)  # d pixel / d film mm
     A0 = np.linalg.inv(Jh @ np.diag([1.0 / ppm, -1.0 / ppm]))
@@ -317,7 +331,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
     init_err = max(0.75, 0.5 * f + 0.25)
     idx = np.where(inside)[0]
-    fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules)
+    fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
+                   max_shift=radius_ov * f + 1.0)
     timings["lsm"] = time.perf_counter() - t0
 
     xy = np.full((N, 2), np.nan)
@@ -416,7 +431,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
 
     A smooth film deformation moves neighbouring crosses alike, so each residual against the
     projective model is compared with a leave-one-out local quadratic fit to its neighbours'
-    residuals; a departure beyond ``max(6 * robust spread, 4 * its own sigma, 0.03 px)`` is an
+    residuals; a departure beyond ``max(6 * robust spread, 4 * its own sigma, 0.1 px)`` is an
     outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
     worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
     """
@@ -432,7 +447,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
         pred = _local_prediction(film[idx], r[idx])
         dev = np.hypot(*(r[idx] - pred).T)
         spread = 1.4826 * np.median(dev)
-        thr = np.maximum(max(6.0 * spread, 0.03), 4.0 * np.nan_to_num(sigma[idx], nan=1.0))
+        thr = np.maximum(max(6.0 * spread, 0.1), 4.0 * np.nan_to_num(sigma[idx], nan=1.0))
         bad = dev > thr
         if not bad.any():
             break

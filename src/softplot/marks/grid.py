@@ -60,32 +60,44 @@ def projective_fit(src, dst, weights=None) -> np.ndarray:
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
     n = len(src)
-    if n < 5:
+    if n < 5 or np.linalg.matrix_rank(src - src.mean(0), tol=1e-9 * (np.abs(src).max() + 1)) < 2:
         A = _affine_fit(src, dst)
         return np.vstack([A, [0.0, 0.0, 1.0]])
     Hm = _dlt(src, dst)
     if Hm is None:
         return np.vstack([_affine_fit(src, dst), [0.0, 0.0, 1.0]])
     wts = np.ones(n) if weights is None else np.asarray(weights, float)
-    # Gauss-Newton on the 8 parameters (geometric error in dst units)
-    h = Hm.ravel()[:8].copy()
-    for _ in range(5):
-        Hc = np.append(h, 1.0).reshape(3, 3)
-        x, y = src[:, 0], src[:, 1]
-        w = Hc[2, 0] * x + Hc[2, 1] * y + 1.0
-        px = (Hc[0, 0] * x + Hc[0, 1] * y + Hc[0, 2]) / w
-        py = (Hc[1, 0] * x + Hc[1, 1] * y + Hc[1, 2]) / w
-        r = np.concatenate([dst[:, 0] - px, dst[:, 1] - py])
-        z = np.zeros(n)
-        o = np.ones(n)
-        Jx = np.column_stack([x / w, y / w, o / w, z, z, z, -px * x / w, -px * y / w])
-        Jy = np.column_stack([z, z, z, x / w, y / w, o / w, -py * x / w, -py * y / w])
-        J = np.vstack([Jx, Jy])
-        W = np.concatenate([wts, wts])
-        dh = np.linalg.lstsq(J * W[:, None] ** 0.5, r * W**0.5, rcond=None)[0]
-        h += dh
-        if np.abs(dh).max() < 1e-12:
-            break
+    # Gauss-Newton on the 8 parameters (geometric error in dst units); the DLT start is kept
+    # if the iteration misbehaves (degenerate point sets)
+    h0 = Hm.ravel()[:8].copy()
+    h = h0.copy()
+    with np.errstate(all="ignore"):
+        for _ in range(5):
+            Hc = np.append(h, 1.0).reshape(3, 3)
+            x, y = src[:, 0], src[:, 1]
+            w = Hc[2, 0] * x + Hc[2, 1] * y + 1.0
+            if not np.all(np.abs(w) > 1e-9):
+                return np.append(h0, 1.0).reshape(3, 3)
+            px = (Hc[0, 0] * x + Hc[0, 1] * y + Hc[0, 2]) / w
+            py = (Hc[1, 0] * x + Hc[1, 1] * y + Hc[1, 2]) / w
+            r = np.concatenate([dst[:, 0] - px, dst[:, 1] - py])
+            z = np.zeros(n)
+            o = np.ones(n)
+            Jx = np.column_stack([x / w, y / w, o / w, z, z, z, -px * x / w, -px * y / w])
+            Jy = np.column_stack([z, z, z, x / w, y / w, o / w, -py * x / w, -py * y / w])
+            J = np.vstack([Jx, Jy])
+            W = np.sqrt(np.concatenate([wts, wts]))
+            if not (np.isfinite(J).all() and np.isfinite(r).all()):
+                return np.append(h0, 1.0).reshape(3, 3)
+            try:
+                dh = np.linalg.lstsq(J * W[:, None], r * W, rcond=None)[0]
+            except np.linalg.LinAlgError:
+                return np.append(h0, 1.0).reshape(3, 3)
+            h += dh
+            if np.abs(dh).max() < 1e-12:
+                break
+    if not np.isfinite(h).all():
+        h = h0
     return np.append(h, 1.0).reshape(3, 3)
 
 
@@ -217,7 +229,8 @@ def fit_grid(
         return None
     px, py = reseau.pitch_x, reseau.pitch_y
     if px_per_mm is None:
-        sp = estimate_spacing(xy)
+        top = np.argsort(-score)[: max(int(1.5 * reseau.count), 8)]
+        sp = estimate_spacing(xy[top])
         if sp is None:
             return None
         px_per_mm = sp / min(px, py)

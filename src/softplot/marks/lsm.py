@@ -118,12 +118,13 @@ def _parts(shape: MarkShape, u, v) -> np.ndarray:
     return np.where(core, -1, part).astype(np.int8)
 
 
-def _gather(patches, origin, ref, c, A, shape, margin, background=None):
+def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=None):
     """Pick each mark's relevant pixels from its patch into padded (N, P) arrays.
 
     Returns ``(X, Y, G, valid, S)``: pixel coordinates relative to ``ref`` (float32), grey
     values (float32, 0 where padded), the validity mask (valid pixels come first in each row)
-    and the scene background estimate under the mark (zeros without ``background``).
+    and the scene background estimate under the mark (zeros without ``background``), and
+    the prior pixel weights (``weight``; 1 without it, 0 where padded).
     """
     n, h, w = patches.shape
     off = (origin - ref).astype(np.float32)
@@ -151,7 +152,11 @@ def _gather(patches, origin, ref, c, A, shape, margin, background=None):
     else:
         S = take(background)
         S[~valid] = 0.0
-    return take(X), take(Y), G, valid, S
+    if weight is None:
+        Wp = valid.astype(np.float32)
+    else:
+        Wp = np.where(valid, take(weight), 0.0).astype(np.float32)
+    return take(X), take(Y), G, valid, S, Wp
 
 
 def _tukey(r, scale):
@@ -171,7 +176,7 @@ def _mad(r, valid):
 
 def _contrast(p, data, T=None):
     """Mark level minus the background under it (N,): the signed contrast of each mark."""
-    X, Y, _, valid, S = data
+    X, Y, _, valid, S, _ = data
     bg = S + p[:, 9:10].astype(np.float32) * X + p[:, 10:11].astype(np.float32) * Y
     wt = valid.astype(np.float32) if T is None else T * valid
     return p[:, 8] - (bg * wt).sum(1) / np.maximum(wt.sum(1), 1e-6)
@@ -257,7 +262,7 @@ def _step(p, data, shape, active, robust):
     M, T, u, v, J = _model(p, data, shape)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
     w = _tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32)
-    w *= valid
+    w *= data[5]
     Nm, g = _normal(J, w, r, active)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
     diag = np.arange(_NP)
@@ -290,6 +295,7 @@ def lsm(
     tol: float = 2e-4,
     fit_shape: bool = True,
     background: np.ndarray | None = None,
+    weight: np.ndarray | None = None,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -321,6 +327,9 @@ def lsm(
         An estimate of the scene under each mark (e.g. the patch with the thin mark removed by
         a morphological opening or closing); the model's background is then this estimate
         plus a constant and a tilt. Without it the background is a plane.
+    weight : (N, h, w) float array, optional
+        Prior pixel weights in [0, 1] (e.g. low where the background estimate is uncertain);
+        they multiply the robust weights.
 
     Returns
     -------
@@ -347,7 +356,7 @@ def lsm(
 
     def gather(margin):
         return _gather(patches, origin, ref, p[:, 0:2] + ref, p[:, 2:6].reshape(n, 2, 2),
-                       shape, margin, background)
+                       shape, margin, background, weight)
 
     # capture stage: wide blur, only position and radiometry, generous pixel margin
     if s_cap > s0:
@@ -375,7 +384,7 @@ def lsm(
             todo = todo[~done]
             if todo.size == 0:
                 break
-    X, Y, G, valid, Sb = data
+    X, Y, G, valid, Sb, _ = data
     vf = valid.astype(np.float32)
     sw = np.maximum(vf.sum(1), 1.0)
     npix = valid.sum(1)
@@ -384,7 +393,8 @@ def lsm(
     M, T, u, v, J = _model(p, data, shape)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
     noise = _mad(r, valid)
-    w = (_tukey(r, _scale(r, valid, p, data)) if robust else vf) * vf
+    w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else vf) * vf
+    w = w_rob * data[5]
     Nm, _ = _normal(J, w, r, full)
     red = np.maximum(w.sum(1) - full.sum(), 1.0)
     sigma0 = np.sqrt((w * r * r).sum(1, dtype=float) / red)
@@ -406,7 +416,7 @@ def lsm(
     # support of each part of the mark: share of well-fitting pixels near the drawn shape
     parts = _parts(shape, u, v)
     near = support_mask(shape, u, v, 1.5 * p[:, 6:7] + 1.0) & valid
-    good = (w > 0.5) & near
+    good = (w_rob > 0.5) & near
     K = 4 if shape.kind == "cross" else 1
     support = np.empty((n, K))
     for k in range(K):

@@ -89,15 +89,21 @@ def _angle(A: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(A[..., 0, 1] - A[..., 1, 0], A[..., 0, 0] + A[..., 1, 1]))
 
 
-def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int) -> np.ndarray:
-    """The scene under thin marks: each patch with its mark removed morphologically.
+def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
+                     delta: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The scene under thin marks, and how far to trust it, for each patch.
 
     A grey opening (bright marks, ``sign > 0``) or closing (dark marks) with a disc wider than
     the blurred stroke (``width + 5 s + 1`` px) removes the cross bars or ring and keeps every
     scene structure larger than the disc, including sharp edges; a 3x3 mean then lowers its
-    noise. Filled marks (dots) have no stroke to remove: the patch median is returned.
+    noise. Near a scene edge the estimate may be off by about ``delta`` px of position, so
+    pixels get the prior weight ``1 / (1 + (delta |grad S| / noise)^2)`` (``noise``: the
+    patch's MAD of data minus estimate): scene edges along an arm then carry little weight
+    instead of pulling the centre. Filled marks (dots) have no stroke to remove: the patch
+    median and unit weights are returned.
     """
     out = np.empty_like(stack)
+    wts = np.ones_like(stack)
     for i, p in enumerate(stack):
         fin = np.isfinite(p)
         med = float(np.median(p[fin])) if fin.any() else 0.0
@@ -108,13 +114,19 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int) -
         d = int(np.ceil(shape.width + 5.0 * s + 1.0)) | 1
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
         op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
-        out[i] = cv2.blur(cv2.morphologyEx(q, op, k, borderType=cv2.BORDER_REPLICATE), (3, 3))
-    return out
+        S = cv2.blur(cv2.morphologyEx(q, op, k, borderType=cv2.BORDER_REPLICATE), (3, 3))
+        out[i] = S
+        gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+        gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+        noise = max(1.4826 * float(np.median(np.abs(q - S)[fin])), 1e-4)
+        wts[i] = 1.0 / (1.0 + (delta * np.hypot(gx, gy) / noise) ** 2)
+    return out, wts
 
 
 def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
-            fit_shape: bool = True, scene: bool = True) -> Fine:
+            fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
+            max_shift: float | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Parameters
@@ -133,6 +145,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     sign : int
         Expected sign of the mark's gain: -1 dark marks (positive), +1 bright (negative).
     rules : AcceptRules, optional
+    anchor, max_shift : (N, 2) and float, optional
+        A fitted centre farther than ``max_shift`` px from ``anchor`` (the model's prediction)
+        is not accepted; default ``c0`` and ``max_shift_factor * init_err + 1``.
     """
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
@@ -146,9 +161,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     s_cap = float(np.hypot(s0, init_err))
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
-    bg = scene_background(stack, shape, s0, sign) if scene else None
+    bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
     res = lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-              background=bg)
+              background=bg, weight=wt)
     # acceptance
     reason = [""] * n
     ok = np.ones(n, bool)
@@ -166,8 +181,10 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     parts_ok = (res.support >= rules.min_part_support).sum(1)
     need = min(rules.min_parts, res.support.shape[1])
     fail(parts_ok < need, "mark partly hidden")
-    shift = np.hypot(*(res.centre - c0).T)
-    fail(shift > rules.max_shift_factor * init_err + 1.0, "moved away from the prediction")
+    if anchor is None:
+        anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
+    shift = np.hypot(*(res.centre - np.asarray(anchor, float).reshape(-1, 2)).T)
+    fail(shift > max_shift, "moved away from the prediction")
     det0 = np.abs(np.linalg.det(A0))
     det1 = np.abs(np.linalg.det(res.A))
     ratio = np.sqrt(det1 / np.maximum(det0, 1e-12))
