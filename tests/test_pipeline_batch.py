@@ -103,3 +103,51 @@ def test_report_table_counts():
     t = rep.table()
     assert rep.done == 1 and rep.failed == 1
     assert "120/121" in t and "b.tif: truncated" in t and "1 done, 1 failed" in t
+
+
+def _crash_on_b(scan, out_dir, crash=True):
+    """Batch task for the test below: the worker process dies on scan b, as killed by the OS."""
+    import os
+
+    if crash and scan.stem == "b":
+        os._exit(9)
+    from softplot.pipeline.batch import write_json_atomic
+
+    write_json_atomic(out_dir / f"{scan.stem}.json", {"complete": True, "status": "done"})
+    return {"status": "done"}
+
+
+def test_batch_survives_a_dying_worker(tmp_path):
+    import dask
+    from dask.distributed import LocalCluster
+
+    from softplot.pipeline.batch import run_batch
+
+    scans = []
+    for n in ("a", "b", "c"):
+        p = tmp_path / f"{n}.tif"
+        p.write_bytes(b"")
+        scans.append(p)
+    out = tmp_path / "out"
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                          dashboard_address=None) as cluster:
+            rep = run_batch(scans, out, _crash_on_b, workers=1,
+                            scheduler=cluster.scheduler_address, progress=False)
+            status = {r["scan"].rsplit("/", 1)[-1]: r for r in rep.rows}
+            assert len(rep.rows) == 3
+            # a finished before the crash (its complete JSON counts even if its summary died
+            # with the worker); b killed the worker; c was in flight on it or ran after
+            assert status["a.tif"]["status"] == "done"
+            assert status["b.tif"]["status"] == "failed"
+            assert "worker lost" in status["b.tif"]["error"]
+            if status["c.tif"]["status"] == "failed":
+                assert "worker lost" in status["c.tif"]["error"]
+            assert not is_complete(out / "b.json")
+            assert "worker lost" in json.loads((out / "b.error.json").read_text())["error"]
+            # the rerun (the cause of the crash removed) skips what is done and finishes the
+            # scans lost with the worker
+            rep = run_batch(scans, out, _crash_on_b, {"crash": False}, workers=1,
+                            scheduler=cluster.scheduler_address, progress=False)
+    assert all(is_complete(out / f"{n}.json") for n in "abc")
+    assert rep.skipped >= 1 and rep.failed == 0 and rep.skipped + rep.done == 3

@@ -231,16 +231,36 @@ def run_batch(
             window = 2 * max(1, len(client.scheduler_info().get("workers", {})) or workers)
             pending = iter(todo)
             ac = as_completed()
+            scan_of = {}
+
+            def submit(scan):
+                f = client.submit(run_one, task, str(scan), str(out_dir), kwargs, pure=False)
+                scan_of[f.key] = scan
+                ac.add(f)
+
             for s in [next(pending) for _ in range(min(window, len(todo)))]:
-                ac.add(client.submit(run_one, task, str(s), str(out_dir), kwargs, pure=False))
+                submit(s)
             bar = tqdm(total=len(todo), unit="scan", disable=not progress, desc="batch")
             for fut in ac:
-                report.rows.append(fut.result())
+                scan = scan_of.pop(fut.key)
+                try:
+                    report.rows.append(fut.result())
+                except Exception as exc:  # noqa: BLE001 - a worker died (memory, signal)
+                    rp = result_path(out_dir, scan)
+                    if is_complete(rp):  # finished; only its summary died with the worker
+                        with open(rp, encoding="utf-8") as fh:
+                            report.rows.append(_row_from_result(scan, json.load(fh)))
+                    else:
+                        msg = f"worker lost: {type(exc).__name__}: {exc}".splitlines()[0]
+                        report.rows.append({**_row_from_result(scan, {}), "status": "failed",
+                                            "error": msg})
+                        write_json_atomic(out_dir / f"{scan.stem}.error.json",
+                                          {"scan": str(scan), "error": msg, "complete": False})
                 fut.release()
                 bar.update(1)
                 nxt = next(pending, None)
                 if nxt is not None:
-                    ac.add(client.submit(run_one, task, str(nxt), str(out_dir), kwargs, pure=False))
+                    submit(nxt)
             bar.close()
         finally:
             client.close()
