@@ -213,7 +213,11 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         else:
             reason[m] = fine.reason[0] or "not found"
     ok = np.array([s == "measured" for s in status])
-    kind = "projective" if ok.sum() >= 5 else "affine"
+    if ok.sum() < need_n:
+        raise DetectionError(
+            f"{name}: fiducial marks not found: expected {n} {cam.name} fiducials "
+            f"({', '.join(sorted({f.shape for f in fids}))}), found {int(ok.sum())} that "
+            "look like them where the pattern puts them")
     Hm = _fit(film[ok], xy[ok], Lm, t)
     r = xy - grid.apply_h(Hm, film)
     bad = ok & (np.hypot(*r.T) > 0.3 * ppm)
