@@ -204,18 +204,62 @@ class Adjustment:
         return self.covariance[np.ix_(idx, idx)]
 
 
-def _residual_statistics(J, Qxx, p, v, sigma0_prior, alpha0):
-    """qvv, redundancy numbers, w, flags for a Gauss-Markov model (J, Qxx over free unknowns)."""
+def _gauss_markov_qvv(J, Qxx, p):
+    """Residual cofactors qvv of a Gauss-Markov model (J, Qxx over the free unknowns)."""
     with np.errstate(divide="ignore"):
         qll = np.where(p > 0, 1.0 / p, np.inf)
     h = np.sum((J @ Qxx) * J, axis=1)
-    qvv = np.clip(qll - h, 0.0, None)
+    return np.clip(qll - h, 0.0, None)
+
+
+def _data_snooping(qvv, p, v, sigma0_prior, alpha0):
+    """Redundancy numbers, standardised residuals w and flags |w| > k from the cofactors qvv."""
     ri = np.clip(p * qvv, 0.0, 1.0)
     k = critical_value(alpha0)
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(ri > 1e-8, v / (sigma0_prior * np.sqrt(qvv)), np.nan)
     flagged = np.abs(np.nan_to_num(w, nan=0.0)) > k
-    return qvv, ri, w, k, flagged
+    return ri, w, k, flagged
+
+
+def _build_adjustment(
+    *, names, x, free, Qf, qvv, p, v, r, sigma0_prior, alpha0, fixed, n, c, it, converged,
+    history,
+) -> Adjustment:
+    """The :class:`Adjustment` at the solution from the free-unknown cofactors ``Qf`` and qvv.
+
+    Shared by the Gauss-Markov (:func:`least_squares`) and Gauss-Helmert models: sigma0 from
+    ``v'Pv / r``, data snooping, and ``Qf`` embedded into the full ``(u, u)`` cofactor matrix
+    (zero rows/columns for fixed unknowns).
+    """
+    vtpv = float(np.sum(p * v**2))
+    sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
+    ri, w, k, flagged = _data_snooping(qvv, p, v, sigma0_prior, alpha0)
+    u = x.size
+    Q = np.zeros((u, u))
+    Q[np.ix_(free, free)] = Qf
+    return Adjustment(
+        names=names,
+        x=x,
+        cofactor=Q,
+        sigma0=sigma0,
+        sigma0_prior=float(sigma0_prior),
+        redundancy=r,
+        residuals=v,
+        qvv=qvv,
+        redundancy_numbers=ri,
+        standardized=w,
+        critical_value=k,
+        alpha0=float(alpha0),
+        flagged=flagged,
+        fixed=fixed,
+        n_obs=n,
+        n_constraints=c,
+        iterations=it,
+        converged=converged,
+        weights=p,
+        history=history,
+    )
 
 
 def _solve_bordered(N, b, G=None, g=None):
@@ -392,32 +436,10 @@ def least_squares(
     _, Qf = _solve_bordered(N, np.zeros(N.shape[0]), G, np.zeros(c) if G is not None else None)
     v = f - obs
     r = int(n - free.sum() + c)
-    vtpv = float(np.sum(p * v**2))
-    sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
-    qvv, ri, w, k, flagged = _residual_statistics(Jf, Qf, p, v, sigma0_prior, alpha0)
-    Q = np.zeros((u, u))
-    Q[np.ix_(free, free)] = Qf
-    return Adjustment(
-        names=names,
-        x=x,
-        cofactor=Q,
-        sigma0=sigma0,
-        sigma0_prior=float(sigma0_prior),
-        redundancy=r,
-        residuals=v,
-        qvv=qvv,
-        redundancy_numbers=ri,
-        standardized=w,
-        critical_value=k,
-        alpha0=float(alpha0),
-        flagged=flagged,
-        fixed=fixed,
-        n_obs=n,
-        n_constraints=c,
-        iterations=it,
-        converged=converged,
-        weights=p,
-        history=history,
+    qvv = _gauss_markov_qvv(Jf, Qf, p)
+    return _build_adjustment(
+        names=names, x=x, free=free, Qf=Qf, qvv=qvv, p=p, v=v, r=r, sigma0_prior=sigma0_prior,
+        alpha0=alpha0, fixed=fixed, n=n, c=c, it=it, converged=converged, history=history,
     )
 
 

@@ -28,8 +28,8 @@ import scipy.sparse
 
 from softplot.adjust.core import (
     Adjustment,
+    _build_adjustment,
     _solve_bordered,
-    critical_value,
     weights_from_sigma,
 )
 from softplot.adjust.diagnose import DEFAULT_RCOND, check_determined
@@ -177,34 +177,7 @@ def gauss_helmert(
     H = q[:, None] * np.asarray(Mi.BT(MiA))  # Q B' M^-1 A  (n, u)
     qvv = np.clip(q**2 * Mi.diag_BtMiB() - np.sum((H @ Qf) * H, axis=1), 0.0, None)
     r = int(m - free.sum())
-    vtpv = float(np.sum(p * v**2))
-    sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
-    ri = np.clip(p * qvv, 0.0, 1.0)
-    kc = critical_value(alpha0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        wst = np.where(ri > 1e-8, v / (sigma0_prior * np.sqrt(qvv)), np.nan)
-    flagged = np.abs(np.nan_to_num(wst, nan=0.0)) > kc
-    Q = np.zeros((u, u))
-    Q[np.ix_(free, free)] = Qf
-    return Adjustment(
-        names=names,
-        x=x,
-        cofactor=Q,
-        sigma0=sigma0,
-        sigma0_prior=float(sigma0_prior),
-        redundancy=r,
-        residuals=v,
-        qvv=qvv,
-        redundancy_numbers=ri,
-        standardized=wst,
-        critical_value=kc,
-        alpha0=float(alpha0),
-        flagged=flagged,
-        fixed=fixed,
-        n_obs=n,
-        n_constraints=0,
-        iterations=it,
-        converged=converged,
-        weights=p,
-        history=history,
+    return _build_adjustment(
+        names=names, x=x, free=free, Qf=Qf, qvv=qvv, p=p, v=v, r=r, sigma0_prior=sigma0_prior,
+        alpha0=alpha0, fixed=fixed, n=n, c=0, it=it, converged=converged, history=history,
     )
