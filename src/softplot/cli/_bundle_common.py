@@ -11,6 +11,70 @@ import numpy as np
 from softplot.errors import SoftplotError
 
 
+def output_options(plots_help: str = "Write residual plots (PNG) into this folder."):
+    """The ``--json OUT``, ``--report OUT`` and ``--plots DIR`` options (in that order)."""
+
+    def deco(f):
+        f = click.option(
+            "--plots", "plots_dir", type=click.Path(file_okay=False), help=plots_help
+        )(f)
+        f = click.option(
+            "--report",
+            "report_out",
+            type=click.Path(dir_okay=False),
+            help="Write the text report to a file (else it is printed).",
+        )(f)
+        return click.option(
+            "--json", "json_out", type=click.Path(dir_okay=False), help="Write results JSON."
+        )(f)
+
+    return deco
+
+
+def emit_report(txt: str, report_out, *, newline: bool = False) -> None:
+    """Write the text report to ``report_out`` (saying so on stderr), else print it.
+
+    ``newline`` appends a final newline to the file.
+    """
+    if report_out:
+        Path(report_out).write_text(txt + ("\n" if newline else ""), encoding="utf-8")
+        click.echo(f"wrote {report_out}", err=True)
+    else:
+        click.echo(txt)
+
+
+def emit_plots(res, plots_dir) -> None:
+    """Write the residual plots of a bundle result into ``plots_dir`` (if given)."""
+    if plots_dir:
+        from softplot.orientation.bundle_report import write_plots
+
+        for p in write_plots(res, plots_dir):
+            click.echo(f"wrote {p}", err=True)
+
+
+def apply_free(data, free) -> None:
+    """Free the intrinsics named in ``free`` (sigma inf) of every camera; fix the others.
+
+    A parameter not in ``free`` keeps its certificate sigma unless it was free (then 0: fixed).
+    ``free`` None leaves the cameras as cameras.toml says.
+    """
+    if free is None:
+        return
+    from softplot.orientation.bundle import INTRINSICS
+
+    for c in data.cameras:
+        c.sigma[:] = [
+            np.inf if n in free else (0.0 if np.isinf(s) else s)
+            for n, s in zip(INTRINSICS, c.sigma, strict=True)
+        ]
+
+
+def refuse_existing_truth(root: Path) -> None:
+    """--make-synthetic never overwrites an existing truth.json."""
+    if (root / "truth.json").exists():
+        raise SoftplotError(f"{root / 'truth.json'} exists; not overwriting")
+
+
 def lm_progress(desc: str):
     """An LMOptions.progress callback drawing a tqdm bar on stderr; returns (callback, close)."""
     from tqdm import tqdm

@@ -7,8 +7,12 @@ from pathlib import Path
 import click
 
 from softplot.cli._bundle_common import (
+    apply_free,
+    emit_plots,
+    emit_report,
     guard_output,
     lm_progress,
+    output_options,
     parse_free,
     project_inputs,
     write_json,
@@ -24,19 +28,7 @@ from softplot.errors import SoftplotError
     type=click.Path(dir_okay=False),
     help="Adjust a Bundle Adjustment in the Large file instead of a project.",
 )
-@click.option("--json", "json_out", type=click.Path(dir_okay=False), help="Write results JSON.")
-@click.option(
-    "--report",
-    "report_out",
-    type=click.Path(dir_okay=False),
-    help="Write the text report to a file (else it is printed).",
-)
-@click.option(
-    "--plots",
-    "plots_dir",
-    type=click.Path(file_okay=False),
-    help="Write residual plots (PNG) into this folder.",
-)
+@output_options()
 @click.option(
     "--free",
     "free",
@@ -109,25 +101,13 @@ def command(
     from softplot.orientation.bundle import BundleOptions, bundle_adjust
     from softplot.orientation.bundle_init import initialize
     from softplot.orientation.bundle_io import read_project
-    from softplot.orientation.bundle_report import text_report, write_plots
+    from softplot.orientation.bundle_report import text_report
 
     inputs = project_inputs(project)
     for o in (json_out, report_out):
         guard_output(o, inputs)
     data = read_project(project)
-    f = parse_free(free)
-    if f is not None:
-        import numpy as np
-
-        for c in data.cameras:
-            c.sigma[:] = [
-                np.inf if n in f else (0.0 if np.isinf(s) else s)
-                for n, s in zip(
-                    ("c", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2"),
-                    c.sigma,
-                    strict=True,
-                )
-            ]
+    apply_free(data, parse_free(free))
     if free_network:
         data.control_sigma[:] = float("nan")
     initialize(data)
@@ -143,13 +123,7 @@ def command(
     finally:
         close()
     txt = text_report(res, angle_unit=angle_unit, title=f"Bundle adjustment of {project}")
-    if report_out:
-        Path(report_out).write_text(txt, encoding="utf-8")
-        click.echo(f"wrote {report_out}", err=True)
-    else:
-        click.echo(txt)
+    emit_report(txt, report_out)
     if json_out:
         write_json(res.to_json(), json_out)
-    if plots_dir:
-        for p in write_plots(res, plots_dir):
-            click.echo(f"wrote {p}", err=True)
+    emit_plots(res, plots_dir)

@@ -7,10 +7,14 @@ from pathlib import Path
 import click
 
 from softplot.cli._bundle_common import (
+    emit_plots,
+    emit_report,
     guard_output,
     lm_progress,
+    output_options,
     parse_free,
     project_inputs,
+    refuse_existing_truth,
     write_json,
 )
 from softplot.errors import SoftplotError
@@ -31,19 +35,7 @@ from softplot.errors import SoftplotError
     help="Calibrate every series (photos.csv column 'series') separately and report "
     "the repeatability of x0, y0, c.",
 )
-@click.option("--json", "json_out", type=click.Path(dir_okay=False), help="Write results JSON.")
-@click.option(
-    "--report",
-    "report_out",
-    type=click.Path(dir_okay=False),
-    help="Write the text report to a file (else it is printed).",
-)
-@click.option(
-    "--plots",
-    "plots_dir",
-    type=click.Path(file_okay=False),
-    help="Write residual plots (PNG) into this folder.",
-)
+@output_options()
 @click.option(
     "--angle-unit", type=click.Choice(["deg", "gon", "rad"]), default="gon", show_default=True
 )
@@ -90,7 +82,7 @@ def command(
         _make(project, photos, n_series, noise_um, seed)
         return
     from softplot.orientation.bundle_io import read_project
-    from softplot.orientation.bundle_report import text_report, write_plots
+    from softplot.orientation.bundle_report import text_report
     from softplot.orientation.calibration import calibrate, calibrate_series
 
     inputs = project_inputs(project)
@@ -120,16 +112,10 @@ def command(
     finally:
         close()
     txt = text_report(res, angle_unit=angle_unit, title=f"Test-field calibration: {project}")
-    if report_out:
-        Path(report_out).write_text(txt, encoding="utf-8")
-        click.echo(f"wrote {report_out}", err=True)
-    else:
-        click.echo(txt)
+    emit_report(txt, report_out)
     if json_out:
         write_json(res.to_json(), json_out)
-    if plots_dir:
-        for p in write_plots(res, plots_dir):
-            click.echo(f"wrote {p}", err=True)
+    emit_plots(res, plots_dir)
 
 
 def _make(project, photos, n_series, noise_um, seed):
@@ -137,8 +123,7 @@ def _make(project, photos, n_series, noise_um, seed):
     from softplot.synthetic.testfield import make_series, make_testfield
 
     root = Path(project)
-    if (root / "truth.json").exists():
-        raise SoftplotError(f"{root / 'truth.json'} exists; not overwriting")
+    refuse_existing_truth(root)
     if n_series:
         if n_series < 2:
             raise SoftplotError("--n-series needs at least 2")

@@ -7,10 +7,15 @@ from pathlib import Path
 import click
 
 from softplot.cli._bundle_common import (
+    apply_free,
+    emit_plots,
+    emit_report,
     guard_output,
     lm_progress,
+    output_options,
     parse_free,
     project_inputs,
+    refuse_existing_truth,
     write_json,
 )
 from softplot.errors import SoftplotError
@@ -37,19 +42,7 @@ from softplot.errors import SoftplotError
     default=None,
     help="bundle: free interior parameters, e.g. c,x0,y0 (default: cameras.toml).",
 )
-@click.option("--json", "json_out", type=click.Path(dir_okay=False), help="Write results JSON.")
-@click.option(
-    "--report",
-    "report_out",
-    type=click.Path(dir_okay=False),
-    help="Write the text report to a file (else it is printed).",
-)
-@click.option(
-    "--plots",
-    "plots_dir",
-    type=click.Path(file_okay=False),
-    help="bundle: write residual plots (PNG) into this folder.",
-)
+@output_options(plots_help="bundle: write residual plots (PNG) into this folder.")
 @click.option(
     "--make-synthetic",
     is_flag=True,
@@ -108,20 +101,12 @@ def command(
         txt = "\n".join(lines)
         js = res.to_json()
     else:
-        import numpy as np
-
         from softplot.adjust.sparse_bundle import LMOptions
-        from softplot.orientation.bundle import INTRINSICS, BundleOptions, bundle_adjust
+        from softplot.orientation.bundle import BundleOptions, bundle_adjust
         from softplot.orientation.bundle_init import initialize
-        from softplot.orientation.bundle_report import text_report, write_plots
+        from softplot.orientation.bundle_report import text_report
 
-        f = parse_free(free)
-        if f is not None:
-            for c in data.cameras:
-                c.sigma[:] = [
-                    np.inf if n in f else (0.0 if np.isinf(s) else s)
-                    for n, s in zip(INTRINSICS, c.sigma, strict=True)
-                ]
+        apply_free(data, parse_free(free))
         initialize(data)
         cb, close = lm_progress("bundle block")
         try:
@@ -132,14 +117,8 @@ def command(
             close()
         txt = text_report(res, title=f"Bundle block triangulation of {project}", max_points=10)
         js = res.to_json()
-        if plots_dir:
-            for p in write_plots(res, plots_dir):
-                click.echo(f"wrote {p}", err=True)
-    if report_out:
-        Path(report_out).write_text(txt + "\n", encoding="utf-8")
-        click.echo(f"wrote {report_out}", err=True)
-    else:
-        click.echo(txt)
+        emit_plots(res, plots_dir)
+    emit_report(txt, report_out, newline=True)
     if json_out:
         write_json(js, json_out)
 
@@ -149,8 +128,7 @@ def _make(project, strips, photos, noise_um, seed):
     from softplot.synthetic.block import make_block
 
     root = Path(project)
-    if (root / "truth.json").exists():
-        raise SoftplotError(f"{root / 'truth.json'} exists; not overwriting")
+    refuse_existing_truth(root)
     if strips < 1 or photos < 2:
         raise SoftplotError("a block needs >= 1 strip of >= 2 photos")
     net = make_block(n_strips=strips, photos_per_strip=photos, noise_um=noise_um, seed=seed)
