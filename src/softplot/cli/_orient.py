@@ -45,6 +45,29 @@ def json_option(f):
     )(f)
 
 
+def alpha_option(f):
+    """The ``--alpha`` data-snooping significance level (parameter ``alpha0``)."""
+    return click.option(
+        "--alpha",
+        "alpha0",
+        type=float,
+        default=0.001,
+        show_default=True,
+        help="Significance level of data snooping.",
+    )(f)
+
+
+def sigma_image_option(help: str = "Standard error of the photo coordinates, mm."):  # noqa: A002
+    """The ``--sigma-image MM`` option (default 0.005 mm) with the given help text."""
+    return click.option("--sigma-image", type=float, default=0.005, show_default=True, help=help)
+
+
+def finite_or_none(v):
+    """``float(v)``, or None (JSON null) when it is not finite."""
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
 def camera_options(f):
     """``--camera CERT`` / ``--principal-distance MM`` (one of them)."""
     f = click.option(

@@ -7,7 +7,16 @@ from pathlib import Path
 import click
 import numpy as np
 
-from softplot.cli._orient import ang_out, angles_option, json_option, read_table, report, write_json
+from softplot.cli._orient import (
+    alpha_option,
+    ang_out,
+    angles_option,
+    finite_or_none,
+    json_option,
+    read_table,
+    report,
+    write_json,
+)
 from softplot.errors import SoftplotError
 from softplot.orientation.absolute import PARAMS, absolute_orientation
 
@@ -27,14 +36,7 @@ from softplot.orientation.absolute import PARAMS, absolute_orientation
     type=click.Path(dir_okay=False, path_type=Path),
     help="CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates (a blank X,Y or Z: not observed).",
 )
-@click.option(
-    "--alpha",
-    "alpha0",
-    type=float,
-    default=0.001,
-    show_default=True,
-    help="Significance level of data snooping.",
-)
+@alpha_option
 @angles_option
 @json_option
 def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
@@ -85,7 +87,13 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
         std=dict(zip(PARAMS, stds, strict=True)),
         covariance=(r.covariance * k[:, None] * k[None, :]).tolist(),
         residuals=[
-            {"name": n, "vX": _f(v[0]), "vY": _f(v[1]), "vZ": _f(v[2]), "flagged": bool(f)}
+            {
+                "name": n,
+                "vX": finite_or_none(v[0]),
+                "vY": finite_or_none(v[1]),
+                "vZ": finite_or_none(v[2]),
+                "flagged": bool(f),
+            }
             for n, v, f in zip(names, r.residuals, r.flagged, strict=True)
         ],
         points=[
@@ -124,8 +132,3 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
             notes=notes,
         )
     )
-
-
-def _f(v):
-    v = float(v)
-    return v if np.isfinite(v) else None

@@ -8,7 +8,16 @@ import click
 import numpy as np
 
 from softplot.adjust import critical_value
-from softplot.cli._orient import ang_in, angles_option, json_option, read_table, report, write_json
+from softplot.cli._orient import (
+    alpha_option,
+    ang_in,
+    angles_option,
+    json_option,
+    read_table,
+    report,
+    sigma_image_option,
+    write_json,
+)
 from softplot.errors import SoftplotError
 from softplot.orientation.intersection import intersect
 
@@ -28,21 +37,8 @@ from softplot.orientation.intersection import intersect
     type=click.Path(dir_okay=False, path_type=Path),
     help="CSV photo,name,x,y: photo coordinates in mm reduced to the principal point.",
 )
-@click.option(
-    "--sigma-image",
-    type=float,
-    default=0.005,
-    show_default=True,
-    help="Standard error of the photo coordinates, mm.",
-)
-@click.option(
-    "--alpha",
-    "alpha0",
-    type=float,
-    default=0.001,
-    show_default=True,
-    help="Significance level of data snooping.",
-)
+@sigma_image_option()
+@alpha_option
 @angles_option
 @json_option
 def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -> None:

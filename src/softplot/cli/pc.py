@@ -8,7 +8,15 @@ from pathlib import Path
 import click
 import numpy as np
 
-from softplot.cli._orient import ang_out, angles_option, json_option, read_table, report, write_json
+from softplot.cli._orient import (
+    ang_out,
+    angles_option,
+    finite_or_none,
+    json_option,
+    read_table,
+    report,
+    write_json,
+)
 from softplot.errors import SoftplotError
 from softplot.orientation.resection import EO_NAMES
 from softplot.orientation.two_planes import differential, fiducial_resection, two_planes
@@ -101,11 +109,17 @@ def two_planes_cmd(path, z1, z2, method, f_weights, sigma, json_path) -> None:
     }
     if r.f_i is not None:
         data["f_i"] = [
-            {"name": n, "f_i": _f(f), "p_i": float(p)}
+            {"name": n, "f_i": finite_or_none(f), "p_i": float(p)}
             for n, f, p in zip(names, r.f_i, r.p_i, strict=True)
         ]
     data["residuals"] = [
-        {"name": n, "vX1": _f(v[0]), "vY1": _f(v[1]), "vX2": _f(v[2]), "vY2": _f(v[3])}
+        {
+            "name": n,
+            "vX1": finite_or_none(v[0]),
+            "vY1": finite_or_none(v[1]),
+            "vX2": finite_or_none(v[2]),
+            "vY2": finite_or_none(v[3]),
+        }
         for n, v in zip(names, r.residuals, strict=True)
     ]
     write_json(json_path, data, [path])
@@ -298,8 +312,3 @@ def differential_cmd(a_path, b_path, c_path, json_path) -> None:
             "mm",
         )
     )
-
-
-def _f(v):
-    v = float(v)
-    return v if np.isfinite(v) else None

@@ -8,12 +8,14 @@ import click
 import numpy as np
 
 from softplot.cli._orient import (
+    alpha_option,
     ang_out,
     angles_option,
     camera_options,
     json_option,
     read_table,
     report,
+    sigma_image_option,
     write_json,
 )
 from softplot.cli._orient import principal_distance as resolve_c
@@ -50,21 +52,8 @@ from softplot.orientation.relative import relative_orientation
     help="Independent pairs (phi1, kappa1, omega2, phi2, kappa2; base along x) "
     "instead of dependent (by, bz, omega2, phi2, kappa2).",
 )
-@click.option(
-    "--sigma-image",
-    type=float,
-    default=0.005,
-    show_default=True,
-    help="Standard error of the photo coordinates, mm.",
-)
-@click.option(
-    "--alpha",
-    "alpha0",
-    type=float,
-    default=0.001,
-    show_default=True,
-    help="Significance level of data snooping.",
-)
+@sigma_image_option()
+@alpha_option
 @angles_option
 @json_option
 def command(

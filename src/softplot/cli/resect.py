@@ -8,6 +8,7 @@ import click
 import numpy as np
 
 from softplot.cli._orient import (
+    alpha_option,
     ang_out,
     angles_option,
     camera_options,
@@ -15,6 +16,7 @@ from softplot.cli._orient import (
     read_table,
     report,
     scale_angles,
+    sigma_image_option,
     write_json,
 )
 from softplot.cli._orient import principal_distance as resolve_c
@@ -39,21 +41,8 @@ from softplot.orientation.resection import EO_NAMES, resect
     help="CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates; with sX.. the point is weighted "
     "control, without it is fixed.",
 )
-@click.option(
-    "--sigma-image",
-    type=float,
-    default=0.005,
-    show_default=True,
-    help="Standard error of the photo coordinates, mm (the a priori sigma0).",
-)
-@click.option(
-    "--alpha",
-    "alpha0",
-    type=float,
-    default=0.001,
-    show_default=True,
-    help="Significance level of data snooping.",
-)
+@sigma_image_option("Standard error of the photo coordinates, mm (the a priori sigma0).")
+@alpha_option
 @angles_option
 @json_option
 def command(
