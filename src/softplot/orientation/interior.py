@@ -60,6 +60,34 @@ def _radial_ppoly(radius_mm, delta_r_um) -> PPoly:
     return PPoly(c_ext, x_ext, extrapolate=True)
 
 
+def _brown_delta(xb, yb, r2, k, p, b):
+    """Brown lens displacement (dx, dy) in mm at reduced points xb, yb (floats or arrays).
+
+    ``r2 = xb^2 + yb^2``; radial k1..k3, decentring p1, p2, affinity/shear b1, b2.
+    """
+    k1, k2, k3 = k
+    p1, p2 = p
+    b1, b2 = b
+    F = r2 * (k1 + r2 * (k2 + r2 * k3))
+    dx = xb * F + p1 * (r2 + 2 * xb * xb) + 2 * p2 * xb * yb + b1 * xb + b2 * yb
+    dy = yb * F + 2 * p1 * xb * yb + p2 * (r2 + 2 * yb * yb)
+    return dx, dy
+
+
+def _brown_jacobian(xb, yb, r2, k, p, b):
+    """Derivatives (ddx/dxb, ddx/dyb, ddy/dxb, ddy/dyb) of :func:`_brown_delta` (mm/mm)."""
+    k1, k2, k3 = k
+    p1, p2 = p
+    b1, b2 = b
+    F = r2 * (k1 + r2 * (k2 + r2 * k3))
+    G = 2 * k1 + r2 * (4 * k2 + 6 * k3 * r2)
+    j00 = F + G * xb * xb + 6 * p1 * xb + 2 * p2 * yb + b1
+    j01 = G * xb * yb + 2 * p1 * yb + 2 * p2 * xb + b2
+    j10 = G * xb * yb + 2 * p1 * yb + 2 * p2 * xb
+    j11 = F + G * yb * yb + 2 * p1 * xb + 6 * p2 * yb
+    return j00, j01, j10, j11
+
+
 class InteriorOrientation:
     """Film <-> photo coordinates of one camera (see the module docstring).
 
@@ -124,13 +152,7 @@ class InteriorOrientation:
             with np.errstate(invalid="ignore", divide="ignore"):
                 f = np.where(r > 1e-12, self._pp(r) / r, self._dpp(0.0))
             return xb * f, yb * f
-        k1, k2, k3 = self.k
-        p1, p2 = self.p
-        b1, b2 = self.b
-        F = r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = xb * F + p1 * (r2 + 2 * xb * xb) + 2 * p2 * xb * yb + b1 * xb + b2 * yb
-        dy = yb * F + 2 * p1 * xb * yb + p2 * (r2 + 2 * yb * yb)
-        return dx, dy
+        return _brown_delta(xb, yb, r2, self.k, self.p, self.b)
 
     def distortion_jacobian(self, xb, yb) -> np.ndarray:
         """(N, 2, 2) derivatives d(delta)/d(xb, yb) at reduced points (mm/mm)."""
@@ -153,15 +175,12 @@ class InteriorOrientation:
             J[:, 1, 0] = xb * yb * g
             J[:, 1, 1] = f + yb * yb * g
             return J
-        k1, k2, k3 = self.k
-        p1, p2 = self.p
-        b1, b2 = self.b
-        F = r2 * (k1 + r2 * (k2 + r2 * k3))
-        G = 2 * k1 + r2 * (4 * k2 + 6 * k3 * r2)
-        J[:, 0, 0] = F + G * xb * xb + 6 * p1 * xb + 2 * p2 * yb + b1
-        J[:, 0, 1] = G * xb * yb + 2 * p1 * yb + 2 * p2 * xb + b2
-        J[:, 1, 0] = G * xb * yb + 2 * p1 * yb + 2 * p2 * xb
-        J[:, 1, 1] = F + G * yb * yb + 2 * p1 * xb + 6 * p2 * yb
+        (
+            J[:, 0, 0],
+            J[:, 0, 1],
+            J[:, 1, 0],
+            J[:, 1, 1],
+        ) = _brown_jacobian(xb, yb, r2, self.k, self.p, self.b)
         return J
 
     # -- film <-> photo, vectorised ------------------------------------------------------------
@@ -223,12 +242,7 @@ class InteriorOrientation:
             return xb, yb
         r2 = xb * xb + yb * yb
         if m == "brown":
-            k1, k2, k3 = self.k
-            p1, p2 = self.p
-            b1, b2 = self.b
-            F = r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = xb * F + p1 * (r2 + 2 * xb * xb) + 2 * p2 * xb * yb + b1 * xb + b2 * yb
-            dy = yb * F + 2 * p1 * xb * yb + p2 * (r2 + 2 * yb * yb)
+            dx, dy = _brown_delta(xb, yb, r2, self.k, self.p, self.b)
             return xb - dx, yb - dy
         r = math.sqrt(r2)
         if r <= 1e-12:
@@ -247,22 +261,18 @@ class InteriorOrientation:
         if self.model == "radial-table":
             X, Y = self.photo_to_film(np.array([[x, y]], float))[0].tolist()
             return X, Y
-        k1, k2, k3 = self.k
-        p1, p2 = self.p
-        b1, b2 = self.b
+        k, p, b = self.k, self.p, self.b
         xb, yb = float(x), float(y)
         for _ in range(20):
             r2 = xb * xb + yb * yb
-            F = r2 * (k1 + r2 * (k2 + r2 * k3))
-            G = 2 * k1 + r2 * (4 * k2 + 6 * k3 * r2)
-            dx = xb * F + p1 * (r2 + 2 * xb * xb) + 2 * p2 * xb * yb + b1 * xb + b2 * yb
-            dy = yb * F + 2 * p1 * xb * yb + p2 * (r2 + 2 * yb * yb)
+            dx, dy = _brown_delta(xb, yb, r2, k, p, b)
             fx = xb - dx - x
             fy = yb - dy - y
-            j00 = 1.0 - (F + G * xb * xb + 6 * p1 * xb + 2 * p2 * yb + b1)
-            j01 = -(G * xb * yb + 2 * p1 * yb + 2 * p2 * xb + b2)
-            j10 = -(G * xb * yb + 2 * p1 * yb + 2 * p2 * xb)
-            j11 = 1.0 - (F + G * yb * yb + 2 * p1 * xb + 6 * p2 * yb)
+            d00, d01, d10, d11 = _brown_jacobian(xb, yb, r2, k, p, b)
+            j00 = 1.0 - d00
+            j01 = -d01
+            j10 = -d10
+            j11 = 1.0 - d11
             det = j00 * j11 - j01 * j10
             sx = (j11 * fx - j01 * fy) / det
             sy = (-j10 * fx + j00 * fy) / det
