@@ -33,7 +33,10 @@ def sweep(cases: list, k: int, seed: int = 0) -> list:
             out.append(
                 pytest.param(
                     *(c if isinstance(c, tuple) else (c,)),
-                    marks=[pytest.mark.slow, pytest.mark.skip(reason="sampled out; SOFTPLOT_FULL=1")],
+                    marks=[
+                        pytest.mark.slow,
+                        pytest.mark.skip(reason="sampled out; SOFTPLOT_FULL=1"),
+                    ],
                 )
             )
     return out

@@ -21,7 +21,8 @@ from pathlib import Path
 _STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;
 max-width:1100px;color:#222;line-height:1.4}
-h1{border-bottom:2px solid #444;padding-bottom:.2em}h2{margin-top:1.6em;border-bottom:1px solid #bbb}
+h1{border-bottom:2px solid #444;padding-bottom:.2em}\
+h2{margin-top:1.6em;border-bottom:1px solid #bbb}
 table{border-collapse:collapse;margin:.6em 0;font-size:.9em}
 th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}th{background:#eee}
 td:first-child,th:first-child{text-align:left}
