@@ -22,6 +22,12 @@ def _run(argv, capsys):
     return e.value.code, out.out, out.err
 
 
+def _contour(capsys, photos, points, out, height="300"):
+    """Run ``restitute --mode contour`` on a points file; return (code, stdout, stderr)."""
+    argv = ["restitute", "--photos", str(photos), "--mode", "contour", "--height", height]
+    return _run([*argv, "--points", str(points), "--out", str(out)], capsys)
+
+
 def _write(path, header, rows):
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
@@ -185,77 +191,17 @@ def test_bad_input_one_line_errors(pair, tmp_path, capsys):
         )
         assert code == 2 and msg in err and err.count("\n") == 1, err
     bad = _write(tmp_path / "b.csv", ["name", "x2", "y2"], [["a", "1.0", "zz"]])
-    code, _, err = _run(
-        [
-            "restitute",
-            "--photos",
-            str(photos),
-            "--mode",
-            "contour",
-            "--height",
-            "300",
-            "--points",
-            str(bad),
-            "--out",
-            str(tmp_path / "o.csv"),
-        ],
-        capsys,
-    )
+    code, _, err = _contour(capsys, photos, bad, tmp_path / "o.csv")
     assert code == 2 and "line 2" in err
     one = _write(
         tmp_path / "one.csv",
         ["photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c"],
         [["l", 0, 0, 1000, 0, 0, 0, 150]],
     )
-    code, _, err = _run(
-        [
-            "restitute",
-            "--photos",
-            str(one),
-            "--mode",
-            "contour",
-            "--height",
-            "300",
-            "--points",
-            str(good),
-            "--out",
-            str(tmp_path / "o.csv"),
-        ],
-        capsys,
-    )
+    code, _, err = _contour(capsys, one, good, tmp_path / "o.csv")
     assert code == 2 and "exactly 2 rows" in err
     before = good.read_bytes()
-    code, _, err = _run(
-        [
-            "restitute",
-            "--photos",
-            str(photos),
-            "--mode",
-            "contour",
-            "--height",
-            "300",
-            "--points",
-            str(good),
-            "--out",
-            str(good),
-        ],
-        capsys,
-    )
+    code, _, err = _contour(capsys, photos, good, good)
     assert code == 2 and "overwrite an input" in err and good.read_bytes() == before
-    code, _, err = _run(
-        [
-            "restitute",
-            "--photos",
-            str(photos),
-            "--mode",
-            "contour",
-            "--height",
-            "5000",
-            "--points",
-            str(good),
-            "--out",
-            str(tmp_path / "o.csv"),
-        ],
-        capsys,
-    )
+    code, _, err = _contour(capsys, photos, good, tmp_path / "o.csv", height="5000")
     assert code == 2 and "behind the right camera" in err
