@@ -22,6 +22,7 @@ import numpy as np
 from softplot.adjust import Adjustment, least_squares
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
+from softplot.orientation._adjusted import AdjustedResult
 
 __all__ = ["AbsoluteOrientation", "absolute_orientation", "similarity_start", "kabsch"]
 
@@ -90,7 +91,7 @@ def transform(params, model) -> np.ndarray:
 
 
 @dataclass
-class AbsoluteOrientation:
+class AbsoluteOrientation(AdjustedResult):
     """Result of :func:`absolute_orientation`.
 
     Attributes
@@ -142,14 +143,6 @@ class AbsoluteOrientation:
     @property
     def std(self) -> np.ndarray:
         return self.adjustment.std
-
-    @property
-    def sigma0(self) -> float:
-        return self.adjustment.sigma0
-
-    @property
-    def redundancy(self) -> int:
-        return self.adjustment.redundancy
 
     def apply(self, model) -> np.ndarray:
         """Model points (N, 3) -> object (N, 3)."""

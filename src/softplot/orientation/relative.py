@@ -39,6 +39,7 @@ import scipy.sparse
 from softplot.adjust import Adjustment, UndeterminedError, gauss_helmert
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
+from softplot.orientation._adjusted import AdjustedResult
 from softplot.orientation.intersection import Intersection, intersect_pair
 
 __all__ = ["RelativeOrientation", "relative_orientation", "essential_start", "y_parallax"]
@@ -202,7 +203,7 @@ def y_parallax(xy1, xy2, b, angles1, angles2, c, x0=0.0, y0=0.0):
 
 
 @dataclass
-class RelativeOrientation:
+class RelativeOrientation(AdjustedResult):
     """Result of :func:`relative_orientation`.
 
     Attributes
@@ -265,14 +266,6 @@ class RelativeOrientation:
     def std(self) -> dict:
         """Standard deviation of every one of the nine parameters (0 for fixed ones)."""
         return dict(zip(PARAMS, self.adjustment.std, strict=True))
-
-    @property
-    def sigma0(self) -> float:
-        return self.adjustment.sigma0
-
-    @property
-    def redundancy(self) -> int:
-        return self.adjustment.redundancy
 
     @property
     def residuals(self) -> np.ndarray:

@@ -32,6 +32,7 @@ from softplot.adjust import Adjustment, least_squares
 from softplot.errors import SoftplotError
 from softplot.geometry.collinearity import camera_coordinates, project, project_jacobian
 from softplot.geometry.rotation import angles_from_matrix, rotation_matrix
+from softplot.orientation._adjusted import AdjustedResult
 from softplot.orientation.absolute import kabsch
 
 __all__ = [
@@ -185,7 +186,7 @@ def pnp_start(xy, XYZ, c, x0=0.0, y0=0.0):
 
 
 @dataclass
-class Resection:
+class Resection(AdjustedResult):
     """Result of :func:`resect`.
 
     Attributes
@@ -246,14 +247,6 @@ class Resection:
     @property
     def std(self) -> np.ndarray:
         return self.adjustment.std[:6]
-
-    @property
-    def sigma0(self) -> float:
-        return self.adjustment.sigma0
-
-    @property
-    def redundancy(self) -> int:
-        return self.adjustment.redundancy
 
 
 def _as_xy(xy, what="photo coordinates"):

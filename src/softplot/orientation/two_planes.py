@@ -53,6 +53,7 @@ import numpy as np
 from softplot.adjust import Adjustment, least_squares, linear_least_squares
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import rotation_derivatives, rotation_matrix
+from softplot.orientation._adjusted import AdjustedResult
 from softplot.orientation.resection import EO_NAMES, resect
 
 __all__ = [
@@ -68,7 +69,7 @@ __all__ = [
 
 
 @dataclass
-class TwoPlanes:
+class TwoPlanes(AdjustedResult):
     """Result of :func:`two_planes` (instrument mm).
 
     Attributes
@@ -105,14 +106,6 @@ class TwoPlanes:
     @property
     def std(self) -> np.ndarray:
         return np.sqrt(np.diag(self.covariance))
-
-    @property
-    def sigma0(self) -> float:
-        return self.adjustment.sigma0
-
-    @property
-    def redundancy(self) -> int:
-        return self.adjustment.redundancy
 
 
 def _xy(a, n=None, what="readings"):
@@ -351,7 +344,7 @@ def plane_readings(xy, Z, X0, angles, F):
 
 
 @dataclass
-class FiducialResection:
+class FiducialResection(AdjustedResult):
     """Result of :func:`fiducial_resection` (instrument mm, radians).
 
     Attributes
@@ -376,14 +369,6 @@ class FiducialResection:
     @property
     def std(self) -> np.ndarray:
         return self.adjustment.std
-
-    @property
-    def sigma0(self) -> float:
-        return self.adjustment.sigma0
-
-    @property
-    def redundancy(self) -> int:
-        return self.adjustment.redundancy
 
 
 def fiducial_resection(
