@@ -159,7 +159,8 @@ class Peaks:
 
 def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
                max_peaks: int, sign: int = 0, contrast: np.ndarray | None = None,
-               min_contrast: float = 0.0) -> Peaks:
+               min_contrast: float = 0.0, image: np.ndarray | None = None,
+               std_half: int = 2) -> Peaks:
     """Local extrema of an NCC map with sub-pixel (parabola) positions.
 
     Parameters
@@ -179,6 +180,9 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
     contrast : ndarray, optional
         Local standard deviation of the image (same shape as the image): peaks where it is
         below ``min_contrast`` are dropped (flat areas give meaningless correlations).
+    image, std_half : ndarray, int, optional
+        Instead of ``contrast``: the image itself; the standard deviation over the
+        ``(2*std_half+1)^2`` window at each peak is computed only there.
     """
     if R.size == 0:
         return Peaks(np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
@@ -212,6 +216,15 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
             cx = np.clip(np.round(xy[:, 0]).astype(int), 0, contrast.shape[1] - 1)
             cy = np.clip(np.round(xy[:, 1]).astype(int), 0, contrast.shape[0] - 1)
             ok = contrast[cy, cx] >= min_contrast
+            xy, v = xy[ok], v[ok]
+        elif image is not None and len(v):
+            ar = np.arange(-std_half, std_half + 1)
+            cx = np.round(xy[:, 0]).astype(int)[:, None] + ar
+            cy = np.round(xy[:, 1]).astype(int)[:, None] + ar
+            cx = np.clip(cx, 0, image.shape[1] - 1)
+            cy = np.clip(cy, 0, image.shape[0] - 1)
+            win = image[cy[:, :, None], cx[:, None, :]].reshape(len(v), -1)
+            ok = win.std(1) >= min_contrast
             xy, v = xy[ok], v[ok]
         out.append(Peaks(xy, v.astype(float), np.full(len(v), sg)))
     if not out:

@@ -127,7 +127,8 @@ def _search_map(R, h, sign, xy_ov, radius):
 
 
 def _reseau_factor(line_px: float, npix: int) -> int:
-    f = max(1, int(round(line_px / 1.1)))
+    """Overview reduction: a cross line about 0.6-1.2 overview px wide."""
+    f = max(1, int(line_px / 0.62))
     # keep the overview to a few megapixels on very large scans
     while npix / (f * f) > 6e6:
         f += 1
@@ -141,15 +142,15 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
     s_ov = float(np.hypot(s_full / f, 0.5))
     arm_half = min(0.5 * shape_ov.length, max(6.0, 3.0 * shape_ov.width))
     R, h = coarse.ncc_map(ov, shape_ov, s_ov, arm_half=arm_half)
-    std = coarse.local_std(ov, max(int(shape_ov.width + 2), 2))
     noise_floor = 2e-3
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
     signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
     best = None
     for sg in signs:
-        pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.35 * pitch_ov), threshold=0.2,
-                               max_peaks=3 * res.count + 100, sign=sg, contrast=std,
-                               min_contrast=noise_floor)
+        pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
+                               threshold=0.2,
+                               max_peaks=3 * res.count + 100, sign=sg, image=ov,
+                               std_half=max(int(arm_half), 2), min_contrast=noise_floor)
         if len(pk) < 4:
             continue
         xy = coarse.ov_to_full(pk.xy, f)
@@ -286,7 +287,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         shape_ov = cross_shape(cam, ppm / f)
         R2, h2 = coarse.ncc_map(ov, shape_ov, float(np.hypot(blur_px / f, 0.5)), A=A_ov,
                                 arm_half=min(0.5 * shape_ov.length, 10.0))
-        pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, 0.35 * res.pitch_x * ppm / f),
+        pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
+                                                              0.5 * shape_ov.length)),
                                 threshold=0.2, max_peaks=3 * res.count + 100, sign=sign)
         g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
                            (sc.width, sc.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,

@@ -11,7 +11,7 @@ false peaks (scene features), this module finds
    quarter of a pitch of a node (scale, rotation, anisotropy, offset);
 3. the absolute row/column numbers: the shift of the relative indices that puts most peak
    score on the certificate's grid while predicting no unseen cross inside the image;
-4. a projective film-mm -> pixel model by RANSAC (OpenCV ``findHomography``) over the assigned
+4. a projective film-mm -> pixel model by iterated least squares with rejection over the assigned
    peaks, refined by least squares on its inliers.
 
 Film coordinates (mm): x right, y up, reseau row 0 on top. Pixel coordinates: x right, y down.
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -354,19 +353,19 @@ def fit_grid(
 
     film = reseau.film()[node]
     pix = xy[cand]
-    # RANSAC projective; threshold tolerant of film deformation (~0.15 mm)
+    # robust projective fit: the lattice assignment already tolerates +-0.2 pitch, so a few
+    # rounds of least squares with rejection beyond a deformation-tolerant threshold
+    # (~0.15 mm) suffice (no random sampling needed)
     thr = max(3.0, 0.15 * px_per_mm)
     keep = np.ones(len(cand), bool)
-    if len(cand) >= 8:
-        Hm, mask = cv2.findHomography(film, pix, cv2.RANSAC, ransacReprojThreshold=thr,
-                                      maxIters=2000, confidence=0.999)
-        if Hm is not None and mask is not None and mask.sum() >= 5:
-            keep = mask.ravel().astype(bool)
-    Hm = projective_fit(film[keep], pix[keep])
-    res = apply_h(Hm, film) - pix
-    rr = np.hypot(res[:, 0], res[:, 1])
-    keep = rr < max(thr, 4.0 * np.sqrt(np.mean(rr[keep] ** 2)) if keep.any() else thr)
-    if keep.sum() >= 3:
+    Hm = projective_fit(film, pix)
+    for _ in range(4):
+        rr = np.hypot(*(apply_h(Hm, film) - pix).T)
+        med = float(np.median(rr[keep])) if keep.any() else thr
+        new_keep = rr < max(thr, 4.0 * 1.4826 * med)
+        if new_keep.sum() < 3 or (new_keep == keep).all():
+            break
+        keep = new_keep
         Hm = projective_fit(film[keep], pix[keep])
     cand, node = cand[keep], node[keep]
     res = apply_h(Hm, reseau.film()[node]) - xy[cand]

@@ -188,11 +188,8 @@ def _scale(r, valid, p, data):
     return np.maximum(_mad(r, valid), 0.01 * np.abs(_contrast(p, data)) + 1e-4)
 
 
-def _model(p, data, shape, need_jac=True):
-    """Model grey values (N, P) and, if asked, the Jacobian (N, P, 11) at parameters ``p``.
-
-    ``p[:, 0:2]`` is the centre relative to the reference point of the pixel coordinates.
-    """
+def _geom(p, data, shape):
+    """Template and its derivatives at the current geometry: (T, Tu, Tv, Ts, u, v, dx, dy)."""
     X, Y = data[0], data[1]
     q = p.astype(np.float32)
     dx = X - q[:, 0:1]
@@ -202,10 +199,19 @@ def _model(p, data, shape, need_jac=True):
     v = a10 * dx + a11 * dy
     ap = tuple(x[:, None] for x in aperture(q[:, 2:6].reshape(-1, 2, 2)))
     T, Tu, Tv, Ts = shape.evaluate(u, v, q[:, 6:7], aperture=ap)
+    return T, Tu, Tv, Ts, u, v, dx, dy
+
+
+def _assemble(p, data, g, need_jac=True):
+    """Model grey values (N, P) and Jacobian (N, P, 11) from the geometry ``g``."""
+    X, Y = data[0], data[1]
+    T, Tu, Tv, Ts, u, v, dx, dy = g
+    q = p.astype(np.float32)
     bg = data[4] + q[:, 9:10] * X + q[:, 10:11] * Y  # scene estimate + tilt, without ``a``
     M = q[:, 7:8] + bg + (q[:, 8:9] - bg) * T
     if not need_jac:
         return M, T, u, v, None
+    a00, a01, a10, a11 = (q[:, k : k + 1] for k in range(2, 6))
     b = q[:, 8:9] - bg  # the mark covers the background: dM/dT = mark - background
     bu, bv = b * Tu, b * Tv
     J = np.empty(X.shape + (_NP,), np.float32)
@@ -223,22 +229,12 @@ def _model(p, data, shape, need_jac=True):
     return M, T, u, v, J
 
 
-def _init_radiometry(p, data, shape):
-    """Offset and gain by linear regression of the data on the template (in place)."""
-    G, valid = data[2] - data[4], data[3]
-    vf = valid.astype(np.float32)
-    p[:, 9:11] = 0.0
-    p[:, 7:9] = (0.0, 1.0)
-    _, T, _, _, _ = _model(p, data, shape, need_jac=False)
-    sw = np.maximum(vf.sum(1), 1.0)
-    mT = (T * vf).sum(1) / sw
-    mG = (G * vf).sum(1) / sw
-    cov_tg = ((T - mT[:, None]) * (G - mG[:, None]) * vf).sum(1)
-    var_t = np.maximum(((T - mT[:, None]) ** 2 * vf).sum(1), 1e-12)
-    p[:, 8] = cov_tg / var_t
-    p[:, 7] = mG - p[:, 8] * mT
-    # b is the mark level relative to ``a`` (not to the scene estimate): add the scene under it
-    p[:, 8] += (data[4] * T * vf).sum(1) / np.maximum((T * vf).sum(1), 1e-6)
+def _model(p, data, shape, need_jac=True):
+    """Model grey values (N, P) and, if asked, the Jacobian (N, P, 11) at parameters ``p``.
+
+    ``p[:, 0:2]`` is the centre relative to the reference point of the pixel coordinates.
+    """
+    return _assemble(p, data, _geom(p, data, shape), need_jac)
 
 
 def _normal(J, w, r, active):
@@ -256,22 +252,50 @@ def _normal(J, w, r, active):
     return Nm, g
 
 
-def _step(p, data, shape, active, robust):
-    """One (robust) Gauss-Newton step on ``p`` in place; returns the centre update (px)."""
+def _step(p, data, shape, active, robust, init=False):
+    """One (robust) Gauss-Newton step on ``p`` in place.
+
+    Returns the centre update (px) and an estimate of the centre's standard deviation (px).
+    With ``init`` the radiometry (offset, contrast) is first set by linear regression of the
+    data on the template at the current geometry.
+    """
     G, valid = data[2], data[3]
-    M, T, u, v, J = _model(p, data, shape)
+    geo = _geom(p, data, shape)
+    T = geo[0]
+    if init:
+        # linear regression of (data - scene) on T; then the model is linear in a, b
+        vf = valid.astype(np.float32)
+        Gs = G - data[4]
+        sw = np.maximum(vf.sum(1), 1.0)
+        mT = (T * vf).sum(1) / sw
+        mG = (Gs * vf).sum(1) / sw
+        cov_tg = ((T - mT[:, None]) * (Gs - mG[:, None]) * vf).sum(1)
+        var_t = np.maximum(((T - mT[:, None]) ** 2 * vf).sum(1), 1e-12)
+        b = cov_tg / var_t
+        p[:, 7] = mG - b * mT
+        p[:, 8] = b + (data[4] * T * vf).sum(1) / np.maximum((T * vf).sum(1), 1e-6)
+        p[:, 9:11] = 0.0
+    M, T, u, v, J = _assemble(p, data, geo)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
-    w = _tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32)
-    w *= data[5]
+    w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32))
+    w_rob *= valid
+    w = w_rob * data[5]
     Nm, g = _normal(J, w, r, active)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
     diag = np.arange(_NP)
     Nm[:, diag, diag] *= 1.0 + 1e-6
     try:
-        dp = np.linalg.solve(Nm, g[..., None])[..., 0]
+        Ninv = np.linalg.inv(Nm)
+        dp = np.matmul(Ninv, g[..., None])[..., 0]
     except np.linalg.LinAlgError:
-        dp = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(Nm, g, strict=True)])
+        Ninv = np.linalg.pinv(Nm)
+        dp = np.matmul(Ninv, g[..., None])[..., 0]
     dp[~np.isfinite(dp)] = 0.0
+    red = np.maximum(w.sum(1) - active.sum(), 1.0)
+    s0sq = (w * r * r).sum(1, dtype=float) / red
+    cov = Ninv[:, 0:2, 0:2] * s0sq[:, None, None]
+    sig = np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0.0))
+    state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq)
     # step limits: centre 1.5 px, shape 5 %, blur within a sane range
     dc = np.hypot(dp[:, 0], dp[:, 1])
     k = np.minimum(1.0, 1.5 / np.maximum(dc, 1e-12))
@@ -279,7 +303,7 @@ def _step(p, data, shape, active, robust):
     dp[:, 2:6] = np.clip(dp[:, 2:6], -0.05, 0.05)
     p += dp
     p[:, 6] = np.clip(p[:, 6], 0.25, 25.0)
-    return dc
+    return dc, sig, state
 
 
 def lsm(
@@ -292,7 +316,7 @@ def lsm(
     init_err: float = 2.0,
     robust: bool = True,
     max_iter: int = 10,
-    tol: float = 2e-4,
+    tol: float = 5e-4,
     fit_shape: bool = True,
     background: np.ndarray | None = None,
     weight: np.ndarray | None = None,
@@ -316,7 +340,7 @@ def lsm(
     init_err : float
         Expected error of ``c0`` (px); above 0.75 px a capture stage with a wide blur runs first.
     robust : bool
-        Tukey pixel weights after the first two fine iterations.
+        Tukey pixel weights after the first fine iteration.
     max_iter : int
         Iterations of the fine stage.
     tol : float
@@ -361,25 +385,28 @@ def lsm(
     # capture stage: wide blur, only position and radiometry, generous pixel margin
     if s_cap > s0:
         data = gather(3.0 * s_cap + init_err + 1.0)
-        _init_radiometry(p, data, shape)
-        for _ in range(3):
-            _step(p, data, shape, capture, robust=False)
+        for i in range(3):
+            _step(p, data, shape, capture, robust=False, init=i == 0)[:2]
         p[:, 6] = s0
     # fine stage: all parameters, tight margin around the mark, robust weights
-    data = gather(3.0 * s0 + 2.0)
-    if s_cap <= s0:
-        _init_radiometry(p, data, shape)
+    data = gather(2.5 * s0 + 1.25)
     converged = np.zeros(n, bool)
     todo = np.arange(n)
     it = 0
+    last = None  # each mark's state at its last step (the solution to within 0.2 sigma)
     for it in range(1, max_iter + 1):
-        rob = robust and it > 2
-        sub = tuple(a[todo] for a in data)
+        rob = robust and it > 1
+        sub = data if todo.size == n else tuple(a[todo] for a in data)
         q = p[todo]
-        dc = _step(q, sub, shape, full, robust=rob)
+        dc, sig, st = _step(q, sub, shape, full, robust=rob, init=(it == 1 and s_cap <= s0))
         p[todo] = q
-        if rob or not robust:
-            done = dc < tol
+        if last is None:
+            last = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in st.items()}
+        for k, v in st.items():
+            last[k][todo] = v
+        if (rob and it > 2) or not robust:
+            # converged when the update is below tol or a fifth of the centre's precision
+            done = dc < np.maximum(tol, 0.2 * np.nan_to_num(sig, nan=0.0))
             converged[todo[done]] = True
             todo = todo[~done]
             if todo.size == 0:
@@ -389,20 +416,12 @@ def lsm(
     sw = np.maximum(vf.sum(1), 1.0)
     npix = valid.sum(1)
 
-    # final statistics at the solution
-    M, T, u, v, J = _model(p, data, shape)
-    r = np.where(valid, G - M, 0.0).astype(np.float32)
+    # final statistics: each mark's last step (its update was below a fifth of its sigma)
+    M, T, u, v, r = last["M"], last["T"], last["u"], last["v"], last["r"]
     noise = _mad(r, valid)
-    w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else vf) * vf
-    w = w_rob * data[5]
-    Nm, _ = _normal(J, w, r, full)
-    red = np.maximum(w.sum(1) - full.sum(), 1.0)
-    sigma0 = np.sqrt((w * r * r).sum(1, dtype=float) / red)
-    try:
-        Ninv = np.linalg.inv(Nm)
-    except np.linalg.LinAlgError:
-        Ninv = np.linalg.pinv(Nm)
-    cov = Ninv[:, 0:2, 0:2] * (sigma0**2)[:, None, None]
+    w_rob = last["w_rob"]
+    sigma0 = np.sqrt(last["s0sq"])
+    cov = last["cov"]
 
     # correlation of the data with the fitted mark, the fitted background removed from both
     B = p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y

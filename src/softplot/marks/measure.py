@@ -100,71 +100,50 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     pixels get the prior weight ``1 / (1 + (delta |grad S| / noise)^2)`` (``noise``: the
     patch's MAD of data minus estimate): scene edges along an arm then carry little weight
     instead of pulling the centre. Filled marks (dots) have no stroke to remove: the patch
-    median and unit weights are returned.
+    median and unit weights are returned. All patches are filtered at once (stacked into one
+    image with a replicated border between them).
     """
-    out = np.empty_like(stack)
-    wts = np.ones_like(stack)
-    for i, p in enumerate(stack):
-        fin = np.isfinite(p)
-        med = float(np.median(p[fin])) if fin.any() else 0.0
-        if shape.kind == "dot" or not fin.any():
-            out[i] = med
-            continue
-        q = np.where(fin, p, med).astype(np.float32)
-        d = int(np.ceil(shape.width + 5.0 * s + 1.0)) | 1
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
-        op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
-        S = cv2.blur(cv2.morphologyEx(q, op, k, borderType=cv2.BORDER_REPLICATE), (3, 3))
-        out[i] = S
-        gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-        gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-        noise = max(1.4826 * float(np.median(np.abs(q - S)[fin])), 1e-4)
-        wts[i] = 1.0 / (1.0 + (delta * np.hypot(gx, gy) / noise) ** 2)
-    return out, wts
+    n, h, w = stack.shape
+    fin = np.isfinite(stack)
+    med = np.median(stack.reshape(n, -1), axis=1)  # NaN for patches crossing the edge
+    for i in np.where(~np.isfinite(med))[0]:
+        f_i = fin[i]
+        med[i] = float(np.median(stack[i][f_i])) if f_i.any() else 0.0
+    q = np.where(fin, stack, med[:, None, None]).astype(np.float32)
+    if shape.kind == "dot" or n == 0:
+        return np.broadcast_to(med[:, None, None], stack.shape).astype(np.float32), \
+            np.ones_like(stack)
+    d = int(np.ceil(shape.width + 5.0 * s + 1.0)) | 1
+    pad = d // 2 + 2
+    big = np.pad(q, ((0, 0), (pad, pad), (0, 0)), mode="edge").reshape(n * (h + 2 * pad), w)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
+    op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
+    S = cv2.blur(cv2.morphologyEx(big, op, k, borderType=cv2.BORDER_REPLICATE), (3, 3))
+    gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3)
+    S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
+    g = (np.hypot(gx, gy) / 8.0).reshape(n, h + 2 * pad, w)[:, pad : pad + h]
+    dev = np.abs(q - S).reshape(n, -1)
+    noise = np.maximum(1.4826 * np.median(dev, axis=1), 1e-4)
+    wts = 1.0 / (1.0 + (delta * g / noise[:, None, None]) ** 2)
+    return np.ascontiguousarray(S), wts.astype(np.float32)
 
 
-def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
-            init_err: float, sign: int, rules: AcceptRules | None = None,
-            fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
-            max_shift: float | None = None) -> Fine:
-    """LSM at full resolution from initial centres, then the acceptance tests.
-
-    Parameters
-    ----------
-    scan : Scan
-    shape : MarkShape
-        Nominal mark geometry (px).
-    c0 : (N, 2)
-        Initial centres (pixel system).
-    A0 : (N, 2, 2)
-        Predicted pixel -> mark-frame affine of each mark (from the global model).
-    s0 : float
-        Starting blur (px).
-    init_err : float
-        Expected error of ``c0`` (px).
-    sign : int
-        Expected sign of the mark's gain: -1 dark marks (positive), +1 bright (negative).
-    rules : AcceptRules, optional
-    anchor, max_shift : (N, 2) and float, optional
-        A fitted centre farther than ``max_shift`` px from ``anchor`` (the model's prediction)
-        is not accepted; default ``c0`` and ``max_shift_factor * init_err + 1``.
-    """
-    rules = rules or AcceptRules()
-    c0 = np.asarray(c0, float).reshape(-1, 2)
-    n = len(c0)
-    A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
-    if n == 0:
-        z = np.zeros(0)
-        return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None)
+def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene):
+    """Patches, scene background and LSM for a set of marks."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
-    s_cap = float(np.hypot(s0, init_err))
+    s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
-    res = lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-              background=bg, weight=wt)
-    # acceptance
+    return lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
+               background=bg, weight=wt)
+
+
+def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
+    """Acceptance tests: (ok mask, reasons)."""
+    n = len(c0)
     reason = [""] * n
     ok = np.ones(n, bool)
 
@@ -181,9 +160,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     parts_ok = (res.support >= rules.min_part_support).sum(1)
     need = min(rules.min_parts, res.support.shape[1])
     fail(parts_ok < need, "mark partly hidden")
-    if anchor is None:
-        anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
-    shift = np.hypot(*(res.centre - np.asarray(anchor, float).reshape(-1, 2)).T)
+    shift = np.hypot(*(res.centre - anchor).T)
     fail(shift > max_shift, "moved away from the prediction")
     det0 = np.abs(np.linalg.det(A0))
     det1 = np.abs(np.linalg.det(res.A))
@@ -195,4 +172,71 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     fail(~np.isfinite(sig) | (sig > rules.max_sigma), "imprecise")
     s_med = float(np.median(res.s[ok])) if ok.any() else s0
     fail(res.s > 3.0 * s_med + 1.5, "too blurred")
-    return Fine(res.centre, res.cov, res.score, res.cnr, ok, reason, res)
+    return ok, reason
+
+
+def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
+            init_err: float, sign: int, rules: AcceptRules | None = None,
+            fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
+            max_shift: float | None = None, chunk: int = 40) -> Fine:
+    """LSM at full resolution from initial centres, then the acceptance tests.
+
+    Marks are fitted in chunks of ``chunk`` (bounded memory). A first pass trusts ``c0`` to
+    half a pixel (no capture stage); marks that fail the acceptance tests are fitted again
+    with the capture stage for ``init_err``, and the better outcome is kept.
+
+    Parameters
+    ----------
+    scan : Scan
+    shape : MarkShape
+        Nominal mark geometry (px).
+    c0 : (N, 2)
+        Initial centres (pixel system).
+    A0 : (N, 2, 2)
+        Predicted pixel -> mark-frame affine of each mark (from the global model).
+    s0 : float
+        Starting blur (px).
+    init_err : float
+        Largest expected error of ``c0`` (px).
+    sign : int
+        Expected sign of the mark's gain: -1 dark marks (positive), +1 bright (negative).
+    rules : AcceptRules, optional
+    anchor, max_shift : (N, 2) and float, optional
+        A fitted centre farther than ``max_shift`` px from ``anchor`` (the model's prediction)
+        is not accepted; default ``c0`` and ``max_shift_factor * init_err + 1``.
+    """
+    rules = rules or AcceptRules()
+    c0 = np.asarray(c0, float).reshape(-1, 2)
+    n = len(c0)
+    A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
+    if n == 0:
+        z = np.zeros(0)
+        return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None)
+    if anchor is None:
+        anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
+    anchor = np.asarray(anchor, float).reshape(-1, 2)
+    xy = np.full((n, 2), np.nan)
+    cov = np.full((n, 2, 2), np.nan)
+    score = np.full(n, np.nan)
+    cnr = np.full(n, np.nan)
+    ok = np.zeros(n, bool)
+    reason = [""] * n
+    fast = min(init_err, 0.6)
+    passes = [(np.arange(n), fast)]
+    for p_i in range(2):
+        idx, ie = passes[p_i] if p_i < len(passes) else (None, None)
+        if idx is None or idx.size == 0:
+            break
+        retry = []
+        for k in np.array_split(idx, -(-idx.size // chunk)):
+            res = _fit(scan, shape, c0[k], A0[k], s0, ie, sign, fit_shape, scene)
+            good, why = _accept(res, c0[k], A0[k], s0, sign, rules, anchor[k], max_shift)
+            for j, i in enumerate(k):
+                if p_i == 0 or good[j]:
+                    xy[i], cov[i] = res.centre[j], res.cov[j]
+                    score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
+                if not good[j]:
+                    retry.append(i)
+        if p_i == 0 and init_err > fast and retry:
+            passes.append((np.array(retry, int), init_err))
+    return Fine(xy, cov, score, cnr, ok, reason, None)
