@@ -235,10 +235,13 @@ def fit_grid(
         px_per_mm = sp / min(px, py)
     lx, ly = px * px_per_mm, py * px_per_mm
 
-    # rotation from neighbour difference vectors
-    k = min(9, M)
-    dist, nb = cKDTree(xy).query(xy, k=k)
-    d = (xy[nb[:, 1:]] - xy[:, None, :]).reshape(-1, 2)
+    # rotation from difference vectors between the strongest peaks and their neighbours
+    # (enough neighbours that the lattice ones are among them even with clutter nearby)
+    top = np.argsort(-score)[: min(M, 3 * reseau.count + 20)]
+    xt = xy[top]
+    k = min(25, len(xt))
+    dist, nb = cKDTree(xt).query(xt, k=k)
+    d = (xt[nb[:, 1:]] - xt[:, None, :]).reshape(-1, 2)
     ln = np.hypot(d[:, 0], d[:, 1])
     ang = np.degrees(np.arctan2(d[:, 1], d[:, 0])) - rotate_deg
     square = abs(lx - ly) < 0.08 * min(lx, ly)
@@ -276,30 +279,73 @@ def fit_grid(
     p0 = xy[ref].copy()
     Bc = B.copy()
     inl = None
-    for tol in (0.2, 0.2, 0.15):
+    # tolerances in lattice units: a fifth of a pitch to start, then at most ~0.5 mm (film
+    # deformation and scanner non-linearity stay far below; coarse grids with 20 mm pitches
+    # would otherwise admit scene peaks several millimetres off)
+    pmin = min(px, py)
+    t_fine = min(0.2, 0.5 / pmin)
+    tol = 0.2
+    for _ in range(2):
         f = (xy - p0) @ np.linalg.inv(Bc).T
         idx = np.round(f)
-        inl = (np.abs(f - idx) < tol).all(1)
+        inl = np.abs(f - idx).max(1) < tol
         if inl.sum() < 3:
             return None
         Mx = np.column_stack([np.ones(inl.sum()), idx[inl]])
         sol = np.linalg.lstsq(Mx, xy[inl], rcond=None)[0]
         p0 = sol[0]
         Bc = sol[1:].T
+    def best_per_node(sel, key_val):
+        """Indices of ``sel`` keeping, per lattice node, the peak with the smallest key."""
+        order = sel[np.argsort(key_val[sel])]
+        seen: set = set()
+        out = []
+        for i in order:
+            k = (int(idx[i, 0]), int(idx[i, 1]))
+            if k not in seen:
+                seen.add(k)
+                out.append(i)
+        return np.array(sorted(out), int)
+
+    # least median of squares over exact affine fits to triplets of nodes (their best-scoring
+    # peaks; all triplets for a few nodes, 300 random ones otherwise), then least squares on
+    # the peaks within max(t_fine, 4 robust sigmas) of that lattice: robust to scene peaks
+    # that fell near a node
     f = (xy - p0) @ np.linalg.inv(Bc).T
     idx = np.round(f).astype(int)
-    inl = (np.abs(f - idx) < 0.2).all(1)
-    # one peak per lattice node: the best-scoring one
-    cand = np.where(inl)[0]
-    order = cand[np.argsort(-score[cand])]
-    seen: set = set()
-    keep = []
-    for i in order:
-        key = (idx[i, 0], idx[i, 1])
-        if key not in seen:
-            seen.add(key)
-            keep.append(i)
-    cand = np.array(sorted(keep), int)
+    inl = np.abs(f - idx).max(1) < tol
+    ii = best_per_node(np.where(inl)[0], -score)
+    pitch_px = float(np.sqrt(abs(np.linalg.det(Bc))))
+    lim_px = tol * pitch_px
+    if len(ii) >= 4:
+        from itertools import combinations
+
+        rng = np.random.default_rng(0)
+        if len(ii) <= 22:
+            tri = np.array(list(combinations(range(len(ii)), 3)))
+        else:
+            tri = np.array([rng.choice(len(ii), 3, replace=False) for _ in range(300)])
+        Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
+        A3 = Mi[tri]  # (T, 3, 3)
+        ok = np.abs(np.linalg.det(A3)) > 1e-9
+        if ok.any():
+            sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]])  # (T, 3, 2)
+            pred = np.einsum("nk,tkd->tnd", Mi, sol)
+            res_px = np.hypot(*(pred - xy[ii][None]).transpose(2, 0, 1))  # (T, n)
+            med = np.median(res_px, axis=1)
+            best = int(np.argmin(med))
+            lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
+            p0, Bc = sol[best][0], sol[best][1:].T
+    # every peak against the robust lattice; per node the closest peak within the limit
+    for _ in range(2):
+        pred_all = p0 + idx @ Bc.T
+        dev_px = np.hypot(*(xy - pred_all).T)
+        cand = best_per_node(np.where(dev_px < lim_px)[0], dev_px)
+        if len(cand) < 3:
+            return None
+        Mx = np.column_stack([np.ones(len(cand)), idx[cand]])
+        sol = np.linalg.lstsq(Mx, xy[cand], rcond=None)[0]
+        p0, Bc = sol[0], sol[1:].T
     ci, ri = idx[cand, 0], idx[cand, 1]
 
     # absolute row/col: choose the index shift that fits the certificate's grid best.
@@ -358,7 +404,15 @@ def fit_grid(
     # (~0.15 mm) suffice (no random sampling needed)
     thr = max(3.0, 0.15 * px_per_mm)
     keep = np.ones(len(cand), bool)
-    Hm = projective_fit(film, pix)
+
+    def model_fit(f, q, rc):
+        # a projective model needs points spread over at least 3 rows and 3 columns and some
+        # redundancy; otherwise it extrapolates wildly: affine then
+        if len(f) >= 12 and len(np.unique(rc // cols)) >= 3 and len(np.unique(rc % cols)) >= 3:
+            return projective_fit(f, q)
+        return np.vstack([_affine_fit(f, q), [0.0, 0.0, 1.0]])
+
+    Hm = model_fit(film, pix, node)
     for _ in range(4):
         rr = np.hypot(*(apply_h(Hm, film) - pix).T)
         med = float(np.median(rr[keep])) if keep.any() else thr
@@ -366,7 +420,7 @@ def fit_grid(
         if new_keep.sum() < 3 or (new_keep == keep).all():
             break
         keep = new_keep
-        Hm = projective_fit(film[keep], pix[keep])
+        Hm = model_fit(film[keep], pix[keep], node[keep])
     cand, node = cand[keep], node[keep]
     res = apply_h(Hm, reseau.film()[node]) - xy[cand]
     J = h_jacobian(Hm, np.zeros((1, 2)))[0]

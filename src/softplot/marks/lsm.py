@@ -302,7 +302,10 @@ def _step(p, data, shape, active, robust, init=False):
     dp[:, 0:2] *= k[:, None]
     dp[:, 2:6] = np.clip(dp[:, 2:6], -0.05, 0.05)
     p += dp
-    p[:, 6] = np.clip(p[:, 6], 0.25, 25.0)
+    p[:, 6] = np.clip(p[:, 6], 0.05, 25.0)
+    # the shape and blur must have settled too (a centre can stall while they still move)
+    settled = (np.abs(dp[:, 6]) < 0.01) & (np.abs(dp[:, 2:6]).max(1) < 2e-3)
+    dc = np.where(settled, dc, np.maximum(dc, 1.0))
     return dc, sig, state
 
 

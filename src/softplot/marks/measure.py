@@ -137,6 +137,11 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene):
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
+    # saturated pixels (at the ends of the grey range) are censored: they only say "at least
+    # this bright" and would flatten the fitted edges; they get no weight
+    sat = (stack >= 1.0 - 1e-6) | (stack <= 1e-6)
+    if sat.any():
+        wt = np.where(sat, 0.0, 1.0 if wt is None else wt).astype(np.float32)
     return lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
                background=bg, weight=wt)
 
