@@ -433,7 +433,8 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
 
     A smooth film deformation moves neighbouring crosses alike, so each residual against the
     projective model is compared with a leave-one-out local quadratic fit to its neighbours'
-    residuals; a departure beyond ``max(6 * robust spread, 4 * its own sigma, 0.1 px)`` is an
+    residuals; a departure beyond ``max(0.1 px, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust
+    spread of all departures, ``sigma``: the mark's own precision) is an
     outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
     worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
     """
@@ -449,7 +450,8 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
         pred = _local_prediction(film[idx], r[idx])
         dev = np.hypot(*(r[idx] - pred).T)
         spread = 1.4826 * np.median(dev)
-        thr = np.maximum(max(6.0 * spread, 0.1), 4.0 * np.nan_to_num(sigma[idx], nan=1.0))
+        sg = np.nan_to_num(sigma[idx], nan=1.0)
+        thr = np.maximum(max(3.0 * spread, 0.1), np.minimum(4.5 * spread, 4.0 * sg))
         bad = dev > thr
         if not bad.any():
             break

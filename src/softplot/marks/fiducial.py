@@ -122,8 +122,12 @@ def _match(film, cands, k_nom, theta0, scale_tol, sign):
 
 def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) -> Detection:
     """Fiducial-mark detection (see the module docstring); same result type as reseau."""
+    import time
+
     from softplot.marks.detect import DetectionError, _blank_check, _transform_json
 
+    t0 = time.perf_counter()
+    timings: dict = {}
     fids = list(cam.fiducials)
     n = len(fids)
     film = cam.fiducial_film()
@@ -157,6 +161,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         F += 1
     ov = coarse.overview(sc, F)
     _blank_check(ov, name)
+    timings["overview"] = time.perf_counter() - t0
     centre = np.array([(sc.width - 1) / 2.0, (sc.height - 1) / 2.0])
     Lm0 = _film_to_pix_linear(ppm, theta0)
     pred = film @ Lm0.T + centre
@@ -178,6 +183,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
             f"({', '.join(sorted({f.shape for f in fids}))}) about {span[0]:.0f} mm apart, "
             f"found {found} in the expected pattern")
     (key, pick, Lm, t, k_fit, th), sign = best
+    timings["pattern"] = time.perf_counter() - t0
     if dpi_source == "estimated":
         dpi = k_fit * MM_PER_INCH
         ppm = k_fit
@@ -244,6 +250,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         sigma_xy=np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1)),
         score=score, cnr=cnr, status=status, reason=reason, transform=tr, rms_px=rms,
         residual=residual, warnings=warnings, dpi_source=dpi_source,
+        timings={**timings, "total": time.perf_counter() - t0},
     )
 
 

@@ -69,6 +69,7 @@ class AcceptRules:
     scale_tol: float = 0.2
     angle_tol_deg: float = 6.0
     max_sigma: float = 0.5
+    max_sigma_ratio: float = 6.0
     max_shift_factor: float = 1.5
 
 
@@ -175,6 +176,9 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
     fail(dang > rules.angle_tol_deg, "wrong orientation")
     sig = res.sigma
     fail(~np.isfinite(sig) | (sig > rules.max_sigma), "imprecise")
+    # far less precise than its peers: partly hidden or on conflicting scene content
+    if ok.sum() >= 5:
+        fail(sig > rules.max_sigma_ratio * float(np.median(sig[ok])), "imprecise")
     s_med = float(np.median(res.s[ok])) if ok.any() else s0
     fail(res.s > 3.0 * s_med + 1.5, "too blurred")
     return ok, reason
