@@ -402,7 +402,7 @@ def _transform_json(Hm, rms, n) -> dict:
     }
 
 
-def _local_prediction(film, r, k_max=16):
+def _local_prediction(film, r, k_max=16, sigma=None):
     """Leave-one-out prediction of each residual from a local quadratic fit to its neighbours.
 
     ``film`` (M, 2) mm, ``r`` (M, 2) px. A smooth film deformation is locally quadratic to a
@@ -421,11 +421,24 @@ def _local_prediction(film, r, k_max=16):
         cols += [dx[..., 0] ** 2, dx[..., 0] * dx[..., 1], dx[..., 1] ** 2]
     D = np.stack(cols, -1)  # (M, k, p)
     w = 1.0 / (1.0 + (d / unit) ** 2)
-    Dw = D * w[..., None]
-    N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(nparam)
-    rhs = np.matmul(Dw.transpose(0, 2, 1), r[j])  # (M, p, 2)
-    coef = np.linalg.solve(N, rhs)
-    return coef[:, 0, :]
+    if sigma is not None:
+        # imprecise neighbours count less (their variance against the typical one)
+        sg = np.nan_to_num(np.asarray(sigma, float), nan=1.0)
+        typ = float(np.median(sg)) + 1e-6
+        w = w / (1.0 + (sg[j] / typ) ** 2)
+
+    def solve(wt):
+        Dw = D * wt[..., None]
+        N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(nparam)
+        rhs = np.matmul(Dw.transpose(0, 2, 1), r[j])  # (M, p, 2)
+        return np.linalg.solve(N, rhs)[:, 0, :]
+
+    pred = solve(w)
+    # second pass: neighbours that depart from their own prediction count less (one bad
+    # neighbour must not condemn a good mark, at a corner especially)
+    dev = np.hypot(*(r - pred).T)
+    spread = 1.4826 * float(np.median(dev)) + 1e-9
+    return solve(w / (1.0 + (dev[j] / (3.0 * spread)) ** 2))
 
 
 def _reject_outliers(film, xy, status, reason, H0, sigma):
@@ -447,7 +460,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
         Hm = grid.projective_fit(film[m], xy[m])
         r = xy - grid.apply_h(Hm, film)
         idx = np.where(m)[0]
-        pred = _local_prediction(film[idx], r[idx])
+        pred = _local_prediction(film[idx], r[idx], sigma=sigma[idx])
         dev = np.hypot(*(r[idx] - pred).T)
         spread = 1.4826 * np.median(dev)
         sg = np.nan_to_num(sigma[idx], nan=1.0)

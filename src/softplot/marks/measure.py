@@ -192,7 +192,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
 
     Marks are fitted in chunks of ``chunk`` (bounded memory). A first pass trusts ``c0`` to
     half a pixel (no capture stage); marks that fail the acceptance tests are fitted again
-    with the capture stage for ``init_err``, and the better outcome is kept.
+    from ``anchor`` (the prediction) with the capture stage for ``init_err``, and an accepted
+    outcome replaces the first.
 
     Parameters
     ----------
@@ -238,14 +239,17 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             break
         retry = []
         for k in np.array_split(idx, -(-idx.size // chunk)):
-            res = _fit(scan, shape, c0[k], A0[k], s0, ie, sign, fit_shape, scene)
-            good, why = _accept(res, c0[k], A0[k], s0, sign, rules, anchor[k], max_shift)
+            # the retry starts from the model's prediction (the anchor): the first start may
+            # have been a scene feature
+            start = c0[k] if p_i == 0 else anchor[k]
+            res = _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene)
+            good, why = _accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
             for j, i in enumerate(k):
                 if p_i == 0 or good[j]:
                     xy[i], cov[i] = res.centre[j], res.cov[j]
                     score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
                 if not good[j]:
                     retry.append(i)
-        if p_i == 0 and init_err > fast and retry:
-            passes.append((np.array(retry, int), init_err))
+        if p_i == 0 and retry:
+            passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
     return Fine(xy, cov, score, cnr, ok, reason, None)
