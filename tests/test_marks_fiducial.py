@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from softplot.camera import load_camera
+from softplot.io import Scan
 from softplot.marks import detect
 from softplot.marks.crb import centre_crb, effective_noise
 from softplot.marks.template import fiducial_shape
@@ -58,3 +59,13 @@ def test_covered_fiducial_is_missing():
     assert st["3"] == "missing" and st["6"] == "missing"
     assert sum(s == "measured" for s in det.status) == 6
     assert det.transform["kind"] == "projective" and det.rms_px < 1.0
+
+
+def test_fiducials_without_dpi():
+    img, truth = render("zeiss-rmk-a-15-23", 41, dpi=300, rotation_deg=5.0)
+    det = detect(Scan.from_array(img), "zeiss-rmk-a-15-23")
+    assert det.dpi_source == "estimated" and abs(det.dpi / 300 - 1) < 0.002
+    tm = {m["name"]: m for m in truth["marks"]}
+    assert det.measured.all()
+    for i, n in enumerate(det.name):
+        assert np.hypot(*(det.xy[i] - (tm[n]["x"], tm[n]["y"]))) < 0.1

@@ -40,6 +40,9 @@ from softplot.marks.template import cross_shape
 __all__ = ["detect", "as_scan", "DetectionError"]
 
 MM_PER_INCH = 25.4
+#: departures from the smooth deformation field below this (film mm) are never outliers:
+#: a local quadratic does not follow a 100 um deformation better than a few micrometres
+OUTLIER_FLOOR_MM = 0.0025
 
 
 class DetectionError(SoftplotError):
@@ -355,7 +358,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
             reason[i] = fine.reason[k] or "not found"
 
     sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, sigma)
+    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, sigma,
+                                         floor_px=max(0.1, OUTLIER_FLOOR_MM * ppm))
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -441,13 +445,14 @@ def _local_prediction(film, r, k_max=16, sigma=None):
     return solve(w / (1.0 + (dev[j] / (3.0 * spread)) ** 2))
 
 
-def _reject_outliers(film, xy, status, reason, H0, sigma):
+def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     """Refit the global model to the measured marks; flag marks that disagree with it.
 
     A smooth film deformation moves neighbouring crosses alike, so each residual against the
     projective model is compared with a leave-one-out local quadratic fit to its neighbours'
-    residuals; a departure beyond ``max(0.1 px, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust
-    spread of all departures, ``sigma``: the mark's own precision) is an
+    residuals; a departure beyond ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust
+    spread of all departures, ``sigma``: the mark's own precision, ``floor``: 0.1 px or
+    :data:`OUTLIER_FLOOR_MM` on the film, whichever is larger) is an
     outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
     worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
     """
@@ -464,7 +469,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma):
         dev = np.hypot(*(r[idx] - pred).T)
         spread = 1.4826 * np.median(dev)
         sg = np.nan_to_num(sigma[idx], nan=1.0)
-        thr = np.maximum(max(3.0 * spread, 0.1), np.minimum(4.5 * spread, 4.0 * sg))
+        thr = np.maximum(max(3.0 * spread, floor_px), np.minimum(4.5 * spread, 4.0 * sg))
         bad = dev > thr
         if not bad.any():
             break
