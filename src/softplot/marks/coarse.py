@@ -17,10 +17,22 @@ import numpy as np
 
 from softplot.marks.template import MarkShape, render
 
-__all__ = ["overview", "ov_to_full", "full_to_ov", "ncc_map", "find_peaks", "Peaks",
-           "local_std"]
+__all__ = ["overview", "overview_compact", "Overview", "ov_to_full", "full_to_ov", "ncc_map",
+           "find_peaks", "Peaks", "local_std"]
 
-_STRIP_BYTES = 1 << 24
+#: bytes of native scan rows reduced at a time by :func:`overview`
+_STRIP_BYTES = 1 << 21
+#: float32 bytes of image rows correlated (and of map rows searched for peaks) at a time
+_NCC_STRIP_BYTES = 1 << 18
+
+
+def _rows_view(blk: np.ndarray) -> np.ndarray:
+    """``blk`` itself when OpenCV can read it in place (rows of contiguous pixels, e.g. a
+    column range of a C-ordered scan), else a contiguous copy."""
+    if blk.strides[-1] == blk.itemsize and (blk.ndim == 2 or blk.strides[-2] ==
+                                            blk.shape[-1] * blk.itemsize):
+        return blk
+    return np.ascontiguousarray(blk)
 
 
 def ov_to_full(xy, factor: int) -> np.ndarray:
@@ -74,7 +86,7 @@ def overview(scan, factor: int, window: tuple[slice, slice] | None = None) -> np
             blk = data[rows, cols]
             if blk.ndim == 3:
                 blk = blk[..., :3] if ch >= 3 else blk[..., 0]
-            blk = np.ascontiguousarray(blk)
+            blk = _rows_view(blk)
             if f > 1:
                 red = cv2.resize(blk, (W, (b - a) // f), interpolation=cv2.INTER_AREA)
             else:
@@ -98,14 +110,81 @@ def overview(scan, factor: int, window: tuple[slice, slice] | None = None) -> np
     return out
 
 
+class Overview:
+    """A grey overview stored compactly: the reduced native grey levels (uint8 / uint16) when
+    the scan is single-channel 8 or 16 bit (a quarter or half of the float32 bytes), else the
+    float32 grey itself.
+
+    Indexing (``ov[rows]``, ``ov[iy, ix]``, ...) returns float32 grey in [0, 1], exactly the
+    values :func:`overview` gives, converted only for the pixels asked for; ``shape``,
+    ``size`` and ``ndim`` are those of the overview (overview pixel system).
+    """
+
+    def __init__(self, q: np.ndarray, scale=None, invert: bool = False):
+        self.q = q
+        self.scale = None if scale is None else np.float32(scale)
+        self.invert = bool(invert)
+        self.shape = q.shape
+        self.size = q.size
+        self.ndim = q.ndim
+
+    def grey(self, a: np.ndarray) -> np.ndarray:
+        """Stored values -> float32 grey (the arithmetic of :func:`overview`)."""
+        if self.scale is None:
+            return a
+        g = np.multiply(a, self.scale, dtype=np.float32)
+        if self.invert:
+            np.subtract(np.float32(1.0), g, out=g)
+        np.minimum(g, np.float32(1.0), out=g)
+        return g
+
+    def __getitem__(self, key) -> np.ndarray:
+        return self.grey(self.q[key])
+
+    def __array__(self, dtype=None, copy=None):
+        g = self.grey(self.q)
+        return g if dtype is None else g.astype(dtype)
+
+
+def overview_compact(scan, factor: int) -> Overview:
+    """The whole scan's overview (as :func:`overview`) stored compactly (:class:`Overview`).
+
+    For a single-channel 8/16-bit scan the reduced grey levels are kept in the scan's own
+    dtype (at factor 1 the scan's pixels themselves, no copy); other scans fall back to the
+    float32 overview.
+    """
+    f = max(int(factor), 1)
+    data = scan.data
+    if not (data.dtype in (np.uint8, np.uint16) and scan.channels in (1, 2)):
+        return Overview(overview(scan, f))
+    H, W = data.shape[0] // f, data.shape[1] // f
+    scale = 1.0 / scan.full_scale
+    if f == 1 and data.ndim == 2:
+        return Overview(data, scale, scan.min_is_white)
+    q = np.empty((max(H, 0), max(W, 0)), data.dtype)
+    if H <= 0 or W <= 0:
+        return Overview(q, scale, scan.min_is_white)
+    row_bytes = data.shape[1] * data.dtype.itemsize * max(scan.channels, 1)
+    step = max(1, _STRIP_BYTES // max(row_bytes * f, 1)) * f
+    for a in range(0, H * f, step):
+        b = min(a + step, H * f)
+        blk = data[a:b, : W * f]
+        if blk.ndim == 3:
+            blk = blk[..., 0]
+        blk = _rows_view(blk)
+        q[a // f : b // f] = (cv2.resize(blk, (W, (b - a) // f), interpolation=cv2.INTER_AREA)
+                              if f > 1 else blk)
+    return Overview(q, scale, scan.min_is_white)
+
+
 def ncc_map(image: np.ndarray, shape: MarkShape, s: float, A=None,
             arm_half: float | None = None) -> tuple[np.ndarray, int]:
     """Normalised cross-correlation of ``image`` with a rendered mark template.
 
     Parameters
     ----------
-    image : (H, W) float32
-        Grey image (overview or full-resolution window).
+    image : (H, W) float32 or Overview
+        Grey image (overview or full-resolution window); read in strips of rows.
     shape : MarkShape
         Mark at the image's scale (px).
     s : float
@@ -127,10 +206,19 @@ def ncc_map(image: np.ndarray, shape: MarkShape, s: float, A=None,
         shape = MarkShape("cross", length=min(shape.length, 2.0 * arm_half), width=shape.width)
     tpl = render(shape, s, A=A)
     h = tpl.shape[0] // 2
-    if image.shape[0] < tpl.shape[0] or image.shape[1] < tpl.shape[1]:
+    th = tpl.shape[0]
+    H, W = image.shape
+    if H < th or W < tpl.shape[1]:
         return np.zeros((0, 0), np.float32), h
-    R = cv2.matchTemplate(np.ascontiguousarray(image, np.float32), tpl, cv2.TM_CCOEFF_NORMED)
-    np.nan_to_num(R, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    # correlated in strips of rows: OpenCV's work buffers (float64 integral images, DFT
+    # tiles) then stay a few megabytes whatever the image size
+    R = np.empty((H - th + 1, W - tpl.shape[1] + 1), np.float32)
+    step = max(64, _NCC_STRIP_BYTES // (4 * W))
+    for a in range(0, R.shape[0], step):
+        b = min(a + step, R.shape[0])
+        R[a:b] = cv2.matchTemplate(np.ascontiguousarray(image[a : b + th - 1], np.float32),
+                                   tpl, cv2.TM_CCOEFF_NORMED)
+        np.nan_to_num(R[a:b], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     return R, h
 
 
@@ -188,18 +276,18 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
         return Peaks(np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
     rad = max(int(min_dist), 1)
     k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * rad + 1, 2 * rad + 1))
+    signs = (1, -1) if sign == 0 else (sign,)
+    found = _local_maxima(R, k, rad, threshold, signs)
     out = []
-    for sg in ((1, -1) if sign == 0 else (sign,)):
-        S = R if sg > 0 else -R
-        D = cv2.dilate(S, k)
-        m = (S >= D) & (S > threshold)
-        iy, ix = np.nonzero(m)
+    for sg in signs:
+        iy, ix = found[sg]
         if iy.size == 0:
             continue
-        v = S[iy, ix]
+        v = R[iy, ix] if sg > 0 else -R[iy, ix]
         if iy.size > 4 * max_peaks:
             keep = np.argpartition(-v, 4 * max_peaks)[: 4 * max_peaks]
             iy, ix, v = iy[keep], ix[keep], v[keep]
+        S = R if sg > 0 else _Negated(R)
         # sub-pixel parabola through the 3x3 neighbourhood
         H, W = S.shape
         ym, yp = np.clip(iy - 1, 0, H - 1), np.clip(iy + 1, 0, H - 1)
@@ -233,3 +321,42 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
               np.concatenate([o.sign for o in out]))
     order = np.argsort(-p.score)[:max_peaks]
     return p.select(order)
+
+
+class _Negated:
+    """``-R`` read by fancy indexing only (no negated copy of a whole map)."""
+
+    def __init__(self, R: np.ndarray):
+        self.R = R
+        self.shape = R.shape
+
+    def __getitem__(self, key):
+        return -self.R[key]
+
+
+def _local_maxima(R: np.ndarray, kernel: np.ndarray, rad: int, threshold: float,
+                  signs) -> dict:
+    """Row-major indices ``(iy, ix)`` of the local maxima of ``sign * R`` above ``threshold``
+    (a pixel equal to the maximum of its ``kernel`` neighbourhood), per sign.
+
+    The map is processed in strips of rows that overlap by ``rad`` (the kernel's half-size),
+    so the result is that of the whole map while the work buffers stay small. ``-R``'s
+    maxima are ``R``'s minima (an erosion), so no negated copy is made.
+    """
+    H, W = R.shape
+    step = max(64, _NCC_STRIP_BYTES // (4 * max(W, 1)))
+    parts: dict = {sg: ([], []) for sg in signs}
+    for a in range(0, H, step):
+        b = min(a + step, H)
+        lo, hi = max(a - rad, 0), min(b + rad, H)
+        blk = R[lo:hi]
+        for sg in signs:
+            if sg > 0:
+                m = (blk >= cv2.dilate(blk, kernel)) & (blk > threshold)
+            else:
+                m = (blk <= cv2.erode(blk, kernel)) & (blk < -threshold)
+            iy, ix = np.nonzero(m[a - lo : b - lo])
+            parts[sg][0].append(iy + a)
+            parts[sg][1].append(ix)
+    return {sg: (np.concatenate(parts[sg][0]), np.concatenate(parts[sg][1]))
+            for sg in signs}

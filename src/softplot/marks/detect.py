@@ -232,7 +232,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         guess = 25.4 * min(sc.width / cam.format_mm[0], sc.height / cam.format_mm[1])
         ppm = guess / MM_PER_INCH
         f = _reseau_factor(res.line_width_mm * ppm, npix)
-        ov = coarse.overview(sc, f)
+        ov = coarse.overview_compact(sc, f)
         _blank_check(ov, name)
         # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi
         shape_ov = cross_shape(cam, ppm / f)
@@ -273,7 +273,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
             f"{span_mm[0] * ppm:.0f}x{span_mm[1] * ppm:.0f} px or more)")
     shape = cross_shape(cam, ppm)
     f = _reseau_factor(shape.width, npix)
-    ov = coarse.overview(sc, f)
+    ov = coarse.overview_compact(sc, f)
     _blank_check(ov, name)
     timings["overview"] = time.perf_counter() - t0
     best = _coarse_grid(sc, ov, f, cam, ppm, polarity, rotate_pix, blur_px)
@@ -298,6 +298,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
                            margin_px=0.5 * shape.length, max_rotation_deg=3.0)
         if g2 is not None and len(g2.node) >= len(g.node):
             g, R, h, pk = g2, R2, h2, pk2
+        del R2
     timings["grid"] = time.perf_counter() - t0
     n_assigned = len(g.node)
     if n_assigned < max(4, 0.2 * res.count):
@@ -316,6 +317,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     spread = float(np.sqrt(np.mean(np.sum(resid**2, 1)))) if len(resid) else 3.0
     radius_ov = max(2.0, (2.0 * spread + 2.0) / f)
     found_ov, val = _search_map(R, h, sign, coarse.full_to_ov(pred, f), radius_ov)
+    del R, ov, best  # the overview and the NCC map are not needed any more: free them
     use = np.isfinite(found_ov).all(1) & (val >= 0.3)
     c0 = np.where(use[:, None], coarse.ov_to_full(found_ov, f), pred)
     # affine of every cross: pixel -> mark frame (u along film x, v along film -y, nominal px)
