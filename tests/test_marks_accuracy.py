@@ -29,9 +29,9 @@ from conftest import sweep
 from softplot.camera import load_camera
 from softplot.io import Scan
 from softplot.marks import detect
-from softplot.marks.crb import centre_crb, effective_noise
+from softplot.marks.crb import _censored_information, centre_crb, effective_noise, render_crb
 from softplot.marks.template import cross_shape
-from softplot.synthetic import ScanSpec, render_scan
+from softplot.synthetic import ScanSpec, TruthMapping, render_scan
 
 
 @functools.lru_cache(maxsize=8)
@@ -45,14 +45,33 @@ def render(camera: str, seed: int = 0, **kw):
     return _render(camera, tuple(sorted(kw.items())), seed)
 
 
+@functools.lru_cache(maxsize=4)
+def _scene(camera: str, items: tuple, seed: int) -> np.ndarray:
+    kw = dict(items)
+    kw.update(noise_sigma=0.0, bits=32, file_format="tif")
+    img, truth = render_scan(camera, ScanSpec(**kw), seed, marks=False, clip=False)
+    return Scan.from_array(img, dpi=truth["dpi"]).grey()
+
+
+def scene_of(camera: str, seed: int = 0, **kw) -> np.ndarray:
+    """The same render without marks and noise (grey, float): the scene each cross hides."""
+    return _scene(camera, tuple(sorted(kw.items())), seed)
+
+
 def scan_of(img, truth) -> Scan:
     bits = truth.get("bit_depth")
     return Scan.from_array(img, dpi=truth["dpi"],
                            bit_depth=bits if img.dtype.kind in "ui" else None)
 
 
-def evaluate(det, truth, camera: str) -> dict:
-    """Compare a detection with the truth: counts, errors, CRB."""
+def evaluate(det, truth, camera: str, scene: np.ndarray | None = None) -> dict:
+    """Compare a detection with the truth: counts, errors, CRB.
+
+    With ``scene`` (the render without marks and noise, :func:`scene_of`) each cross's bound
+    is :func:`softplot.marks.crb.render_crb`, pixel by pixel against the scene it hides, with
+    saturated pixels censored; without it, the flat-background bound at the cross's mean
+    contrast from the truth.
+    """
     tm = {m["name"]: m for m in truth["marks"]}
     r = truth["render"]
     cam = load_camera(camera)
@@ -60,7 +79,17 @@ def evaluate(det, truth, camera: str) -> dict:
     shape = cross_shape(cam, ppm)
     noise = effective_noise(r["noise_sigma"], truth.get("bit_depth"))
     crb1 = centre_crb(shape, r["blur_sigma_px"], 1.0, noise)  # bound at unit contrast
-    out = dict(visible=0, measured=0, missed=[], wrong=[], claimed=[], err=[], crb=[], cnr=[])
+    bound = {}
+    if scene is not None:
+        mp = TruthMapping.from_truth(truth)
+        rs = [m for m in truth["marks"] if m["kind"] == "reseau"]
+        film = np.array([[m["film_x"], m["film_y"]] for m in rs])
+        A = np.linalg.inv(mp.jacobian(film) @ np.diag([1.0 / ppm, -1.0 / ppm]))
+        b = render_crb(scene, np.array([[m["x"], m["y"]] for m in rs]), A, shape,
+                       r["blur_sigma_px"], r["mark_level"], noise)
+        bound = {m["name"]: v for m, v in zip(rs, b, strict=True) if np.isfinite(v)}
+    out = dict(visible=0, measured=0, missed=[], wrong=[], claimed=[], err=[], crb=[], cnr=[],
+               crb_flat=[])
     for i, name in enumerate(det.name):
         t = tm[name]
         if det.kind[i] != "reseau":
@@ -81,45 +110,49 @@ def evaluate(det, truth, camera: str) -> dict:
         out["measured"] += 1
         c = abs(float(t.get("contrast", r["contrast"])))
         out["err"].append(e)
-        out["crb"].append(crb1 / max(c, 1e-6))
+        out["crb_flat"].append(crb1 / max(c, 1e-6))
+        out["crb"].append(bound.get(name, out["crb_flat"][-1]))
         out["cnr"].append(c / noise)
     err = np.array(out["err"]).reshape(-1, 2)
     out["rms"] = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
     out["crb_rms"] = float(np.sqrt(np.mean(np.square(out["crb"])))) if out["crb"] else float("nan")
+    out["crb_flat_rms"] = (float(np.sqrt(np.mean(np.square(out["crb_flat"]))))
+                           if out["crb_flat"] else float("nan"))
     out["cnr_min"] = float(np.min(out["cnr"])) if out["cnr"] else float("nan")
     out["line_px"] = shape.width
     return out
 
 
-#: RMS / CRB allowed per scene content. The bound is computed for a flat background; scene
-#: structure under a cross is not in it. "busy" scenes (sharp-edged blocks, roads and discs
-#: running along arms) exceed it by 2-5x: a documented gap (docs/accuracy.md, "Mark
-#: detection"), tested here so that it cannot grow unnoticed. A textured scene at very high
-#: contrast-to-noise (CNR > 50, 16-bit) exceeds 1.5x slightly (1.7x measured).
-FACTOR = {"none": 1.5, "texture": 1.5, "busy": 6.0}
+#: the issue's criteria (point 6): RMS <= 1.5 x the bound of the render; at least 99.5 % of
+#: the visible crosses measured (per scan of 121 crosses: at most 1 not measured).
+FACTOR = 1.5
+RATE = 0.995
 
 
-def check(res: dict, label: str, scene: str = "texture") -> None:
+def check(res: dict, label: str) -> None:
     assert not res["wrong"], f"{label}: wrong row/col {res['wrong']}"
     assert not res["claimed"], f"{label}: claimed where not visible {res['claimed']}"
-    allowed = max(1, int(0.005 * res["visible"]))
-    if scene == "busy":
-        allowed = max(1, int(0.06 * res["visible"]))
-    assert len(res["missed"]) <= allowed, f"{label}: missed {res['missed']}"
-    factor = FACTOR[scene]
-    if scene == "texture" and res["cnr_min"] > 50:
-        factor = 2.0
-    assert res["rms"] <= factor * res["crb_rms"], (
-        f"{label}: rms {res['rms']:.4f} px > {factor} x CRB {res['crb_rms']:.4f} px")
+    allowed = max(1, int((1.0 - RATE) * res["visible"]))
+    assert len(res["missed"]) <= allowed, f"{label}: missed {len(res['missed'])} {res['missed']}"
+    assert res["rms"] <= FACTOR * res["crb_rms"], (
+        f"{label}: rms {res['rms']:.4f} px > {FACTOR} x CRB {res['crb_rms']:.4f} px")
     if res["cnr_min"] >= 20 and res["line_px"] >= 2.0:
         assert res["rms"] <= 0.03, f"{label}: rms {res['rms']:.4f} px > 0.03 px"
+
+
+def gap(scene: str, res: dict) -> bool:
+    """Renders in the documented open gap of point 6: busy scenes (sharp scene edges and
+    saturated areas along the arms bias a few crosses by 0.01-0.15 px), and smooth texture at
+    a contrast-to-noise above 50 (a texture bias of about 0.003 px then exceeds 1.5x the bound)."""
+    return scene == "busy" or (scene == "texture" and res["cnr_min"] > 50)
 
 
 def _log(label: str, res: dict) -> None:
     path = os.environ.get("SOFTPLOT_SWEEP_LOG")
     if not path:
         return
-    row = {k: res[k] for k in ("visible", "measured", "rms", "crb_rms", "cnr_min", "line_px")}
+    row = {k: res[k] for k in ("visible", "measured", "rms", "crb_rms", "crb_flat_rms",
+                               "cnr_min", "line_px")}
     row.update(case=label, missed=len(res["missed"]), wrong=len(res["wrong"]),
                claimed=len(res["claimed"]))
     with open(path, "a", encoding="utf-8") as f:
@@ -164,18 +197,43 @@ def _ids(v):
 def test_detection_accuracy_sweep(label, cam, kw, seed):
     img, truth = render(cam, seed, **kw)
     det = detect(scan_of(img, truth), cam)
-    res = evaluate(det, truth, cam)
+    res = evaluate(det, truth, cam, scene_of(cam, seed, **kw))
     _log(label, res)
     scene = kw.get("scene", "texture")
-    if scene != "busy":
-        check(res, label, scene)
+    if not gap(scene, res):
+        check(res, label)
         return
-    # Busy scenes: 0 wrong row/col and 0 claimed crosses are required as everywhere; the
+    # The open gap: 0 wrong row/col and 0 claimed crosses are required as everywhere; the
     # detection rate and RMS/CRB criteria of issue 3 point 6 are not yet met on every busy
-    # render (an open gap, docs/accuracy.md): reported as xfail, never silently passed.
+    # render nor on textured ones at CNR > 50 (docs/accuracy.md "Mark detection"): reported as
+    # xfail with the figures, never silently passed.
     assert not res["wrong"], f"{label}: wrong row/col {res['wrong']}"
     assert not res["claimed"], f"{label}: claimed where not visible {res['claimed']}"
     try:
-        check(res, label, scene)
+        check(res, label)
     except AssertionError as exc:
-        pytest.xfail(f"busy-scene gap, issue 3 point 6 not met: {str(exc).splitlines()[0]}")
+        pytest.xfail(f"open gap, issue 3 point 6 not met: {str(exc).splitlines()[0]}")
+
+
+def test_render_crb_matches_flat_bound():
+    """On an empty scene the per-render bound equals the flat-background bound (both from the
+    same model), and it grows where the scene lowers the contrast or saturates."""
+    kw = dict(dpi=900, blur_sigma_px=0.8, noise_sigma=0.01, scene="none")
+    img, truth = render("rollei-6006", 5, **kw)
+    det = detect(scan_of(img, truth), "rollei-6006")
+    res = evaluate(det, truth, "rollei-6006", scene_of("rollei-6006", 5, **kw))
+    assert res["crb_rms"] == pytest.approx(res["crb_flat_rms"], rel=0.05)
+    cam = load_camera("rollei-6006")
+    shape = cross_shape(cam, 900 / 25.4)
+    flat = np.full((200, 200), 0.8)
+    bright = flat.copy()
+    bright[:, 100:] = 1.4  # right of the vertical arm, a scene the scanner saturates
+
+    def bound(sc, clip=(0.0, 1.0)):
+        return render_crb(sc, [[100.0, 100.0]], np.eye(2), shape, 0.8, 0.3, 0.01, clip=clip)[0]
+
+    assert bound(flat) == pytest.approx(centre_crb(shape, 0.8, 0.5, 0.01), rel=0.05)
+    assert bound(flat * 0.75 + 0.075) == pytest.approx(bound(flat) * 0.5 / 0.375, rel=0.05)
+    assert bound(bright) > 1.1 * bound(bright, clip=None)  # censoring removes information
+    z = np.array([-30.0, 0.0, 30.0])
+    assert _censored_information(z) == pytest.approx([0.0, 0.5 + 1.0 / np.pi, 1.0], abs=1e-6)

@@ -247,6 +247,32 @@ def test_callable_scene():
     assert _grey(img, 16).std() > 0.05
 
 
+def test_mark_hides_the_optically_blurred_scene():
+    """An opaque mark replaces the scene, and both pass the same optics: the mark's image is
+    ``(m - blur(scene)) * T`` on top of ``blur(scene)``, so ``T = (I - S) / (m - S)``, with
+    ``S`` the same render without marks, is the flat-scene mark even where a sharp scene edge
+    crosses an arm (an unblurred scene in the mark's amplitude would leave a sharp step in T)."""
+    def step(x, y):  # a sharp edge across the right arm of the central cross, 0.2 mm out
+        return np.where(x > 0.2, 0.9, 0.1)
+
+    def flat(x, y):
+        return np.full(np.shape(x), 0.5)
+
+    base = dict(dpi=1200, blur_sigma_px=1.0, noise_sigma=0.0, deform_um=0.0, bits=32,
+                rotation_deg=3.0)
+    out = []
+    for scene in (step, flat):
+        img, truth = render_scan("rollei-6006", ScanSpec(scene=scene, **base), seed=1)
+        bg, _ = render_scan("rollei-6006", ScanSpec(scene=scene, **base), seed=1, marks=False,
+                            clip=False)
+        m = next(k for k in truth["marks"] if k["name"] == "R5C5")
+        x, y = int(round(m["x"])), int(round(m["y"]))
+        win = (slice(y - 30, y + 31), slice(x - 30, x + 31))
+        S = bg[win].astype(float)
+        out.append((img[win] - S) / (truth["render"]["mark_level"] - S))
+    assert np.abs(out[0] - out[1]).max() < 1e-4
+
+
 @pytest.mark.parametrize(
     "kw,word",
     [

@@ -29,7 +29,7 @@ import numpy as np
 from softplot.marks.lsm import _NP
 from softplot.marks.template import MarkShape, aperture
 
-__all__ = ["centre_crb", "cross_crb_simple", "effective_noise"]
+__all__ = ["centre_crb", "cross_crb_simple", "effective_noise", "render_crb"]
 
 
 def cross_crb_simple(contrast: float, noise: float, blur: float, arm_half_px: float) -> float:
@@ -95,3 +95,101 @@ def centre_crb(shape: MarkShape, blur: float, contrast: float, noise: float,
         cov = np.linalg.inv(F)
         out.append(0.5 * (cov[0, 0] + cov[1, 1]))
     return float(np.sqrt(np.mean(out)))
+
+
+def _censored_information(z):
+    """Fisher information about a Gaussian mean, relative to ``1/sigma^2``, when the sample
+    is clipped at a level ``z`` standard deviations beyond the mean (Tobit model)::
+
+        i(z) = Phi(z) - z phi(z) + phi(z)^2 / (1 - Phi(z))
+
+    1 far from the clip, 0.82 with the mean at the clip, 0 far beyond it.
+    """
+    from scipy.special import ndtr
+
+    z = np.asarray(z, float)
+    zc = np.clip(z, -40.0, 8.0)
+    phi = np.exp(-0.5 * zc * zc) / np.sqrt(2.0 * np.pi)
+    tail = np.maximum(ndtr(-zc), 1e-300)
+    out = ndtr(zc) - zc * phi + phi * phi / tail
+    return np.where(z > 8.0, 1.0, np.clip(out, 0.0, 1.0))
+
+
+def render_crb(scene: np.ndarray, centres: np.ndarray, A: np.ndarray, shape: MarkShape,
+               blur: float, mark_level: float, noise: float,
+               clip: tuple[float, float] | None = (0.0, 1.0)) -> np.ndarray:
+    """Cramér-Rao bound (px) of each mark's centre in one render, its scene included.
+
+    The bound of :func:`centre_crb` assumes one contrast over a flat background. A mark in a
+    photograph hides a scene that varies under it; this bound uses, pixel by pixel, the
+    render's own image model ``mu = B (1 - T) + m T`` (``B`` the scene the mark hides, ``m`` the
+    mark's level, ``T`` the blurred mark of :mod:`softplot.marks.template`), so each pixel
+    informs the centre in proportion to its own contrast ``m - B``. Pixels near the ends of the
+    grey range are censored by the scanner (a saturated pixel says only "at least this
+    bright"); their information is scaled by the Tobit factor of :func:`_censored_information`.
+    The nuisance parameters are those LSM estimates (affine shape, blur, mark level, background
+    offset and tilt); the scene ``B`` itself is taken as known, so the bound is optimistic
+    (lower) wherever an estimator must also infer the scene.
+
+    Parameters
+    ----------
+    scene : (H, W) float array
+        The render without its marks and without noise (grey, the image's linear scale),
+        pixel system.
+    centres : (N, 2)
+        True centres (pixel system).
+    A : (N, 2, 2)
+        Pixel -> mark-frame affine of each mark.
+    shape : MarkShape
+        The mark at the nominal scale (px).
+    blur : float
+        Gaussian blur sigma of the render (px; the pixel footprint is in the model).
+    mark_level : float
+        Grey level of the mark itself.
+    noise : float
+        Noise standard deviation (incl. quantisation, :func:`effective_noise`).
+    clip : (lo, hi) or None
+        Grey range of the image (censoring); None for no censoring.
+
+    Returns
+    -------
+    (N,) float
+        ``sqrt((var_x + var_y) / 2)`` of each centre (px); NaN where the window leaves the
+        image.
+    """
+    scene = np.asarray(scene, float)
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    A = np.broadcast_to(np.asarray(A, float), (len(centres), 2, 2))
+    H, W = scene.shape
+    out = np.full(len(centres), np.nan)
+    for i, (c, Ai) in enumerate(zip(centres, A, strict=True)):
+        grow = 1.0 / max(np.linalg.svd(Ai, compute_uv=False).min(), 1e-3)
+        half = int(np.ceil(shape.extent * grow + 5 * blur + 4))
+        x0, y0 = int(round(c[0])) - half, int(round(c[1])) - half
+        if x0 < 0 or y0 < 0 or x0 + 2 * half + 1 > W or y0 + 2 * half + 1 > H:
+            continue
+        B = scene[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1]
+        yy, xx = np.mgrid[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1].astype(float)
+        dx, dy = xx - c[0], yy - c[1]
+        u = Ai[0, 0] * dx + Ai[0, 1] * dy
+        v = Ai[1, 0] * dx + Ai[1, 1] * dy
+        ap = tuple(np.float32(q) for q in aperture(Ai))
+        T, Tu, Tv, Ts = (np.asarray(t, float) for t in shape.evaluate(
+            u.astype(np.float32), v.astype(np.float32), np.float32(blur), aperture=ap))
+        b = mark_level - B
+        J = np.stack([
+            -b * (Tu * Ai[0, 0] + Tv * Ai[1, 0]), -b * (Tu * Ai[0, 1] + Tv * Ai[1, 1]),
+            b * Tu * dx, b * Tu * dy, b * Tv * dx, b * Tv * dy, b * Ts,
+            1.0 - T, T, dx * (1.0 - T), dy * (1.0 - T)], -1).reshape(-1, _NP)
+        wt = np.ones(J.shape[0])
+        if clip is not None:
+            mu = (B * (1.0 - T) + mark_level * T).ravel()
+            z = np.minimum(clip[1] - mu, mu - clip[0]) / noise
+            wt = _censored_information(z)
+        F = (J * wt[:, None]).T @ J / noise**2
+        try:
+            cov = np.linalg.inv(F)
+        except np.linalg.LinAlgError:
+            continue
+        out[i] = float(np.sqrt(max(0.5 * (cov[0, 0] + cov[1, 1]), 0.0)))
+    return out

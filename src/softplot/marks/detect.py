@@ -453,13 +453,17 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     A smooth film deformation moves neighbouring crosses alike, so each residual against the
     projective model is compared with a leave-one-out local quadratic fit to its neighbours'
     residuals; a departure beyond ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust
-    spread of all departures, ``sigma``: the mark's own precision, ``floor``: 0.1 px or
+    spread of the departures, separately for the marks on the grid's outline, which are
+    extrapolated, and those inside it; ``sigma``: the mark's own precision, ``floor``: 0.1 px or
     :data:`OUTLIER_FLOOR_MM` on the film, whichever is larger) is an
     outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
     worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
     """
     Hm = H0
     n_max = max(1, len(film) // 10)
+    lo, hi = film.min(0), film.max(0)
+    tol = 1e-6 * float(np.max(hi - lo) + 1.0)
+    edge = ((np.abs(film - lo) < tol) | (np.abs(film - hi) < tol)).any(1)
     for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
         if m.sum() < 8:
@@ -469,9 +473,14 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         idx = np.where(m)[0]
         pred = _local_prediction(film[idx], r[idx], sigma=sigma[idx])
         dev = np.hypot(*(r[idx] - pred).T)
-        spread = 1.4826 * np.median(dev)
+        # marks on the outline of the grid are predicted by extrapolation, which a strong
+        # deformation makes worse than the interpolation inside: each group its own spread
+        spread = np.full(len(idx), 1.4826 * np.median(dev))
+        for grp in (edge[idx], ~edge[idx]):
+            if grp.sum() >= 8:
+                spread[grp] = 1.4826 * np.median(dev[grp])
         sg = np.nan_to_num(sigma[idx], nan=1.0)
-        thr = np.maximum(max(3.0 * spread, floor_px), np.minimum(4.5 * spread, 4.0 * sg))
+        thr = np.maximum(np.maximum(3.0 * spread, floor_px), np.minimum(4.5 * spread, 4.0 * sg))
         bad = dev > thr
         if not bad.any():
             break

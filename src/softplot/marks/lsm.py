@@ -309,6 +309,52 @@ def _step(p, data, shape, active, robust, init=False):
     return dc, sig, state
 
 
+def _arm_outliers(p, data, shape, last, z_max=4.0):
+    """The half-arm of each cross that disagrees with its opposite half, or -1.
+
+    At the fitted geometry, each half-arm ``k`` (part index of :func:`_parts`) gives its own
+    one-parameter estimate of the shift across its arm from the final weighted residuals,
+    ``d_k = sum(w J r) / sum(w J^2)`` with ``J = b dT/dn`` (``n`` the across-arm mark-frame
+    axis), and its standard deviation ``sigma0 / sqrt(sum(w J^2))``. The two halves of one arm
+    measure the same coordinate: a difference beyond ``z_max`` standard deviations means a
+    scene structure (an edge running along the arm, a saturated road) or damage has pulled one
+    of them. The culprit is the half with the larger weighted mean square residual.
+
+    Returns
+    -------
+    (N,) int
+        Part index (0..3) to drop, or -1.
+    """
+    X, Y, G, valid, S, _ = data
+    T, Tu, Tv, _, u, v, _, _ = _geom(p, data, shape)
+    q = p.astype(np.float32)
+    b = q[:, 8:9] - (S + q[:, 9:10] * X + q[:, 10:11] * Y)
+    r, w = last["r"], last["w"] * valid
+    parts = _parts(shape, u, v)
+    n = len(p)
+    d = np.zeros((n, 4))
+    var = np.full((n, 4), np.inf)
+    ms = np.zeros((n, 4))
+    s0sq = np.maximum(last["s0sq"], 1e-30)
+    for k in range(4):
+        Jn = b * (Tv if k in (0, 2) else Tu)
+        wk = np.where(parts == k, w, 0.0)
+        den = (wk * Jn * Jn).sum(1, dtype=float)
+        ok = den > 0
+        d[ok, k] = (wk * Jn * r).sum(1, dtype=float)[ok] / den[ok]
+        var[ok, k] = s0sq[ok] / den[ok]
+        ms[:, k] = (wk * r * r).sum(1, dtype=float) / np.maximum(wk.sum(1, dtype=float), 1e-9)
+    out = np.full(n, -1)
+    worst = np.zeros(n)
+    for a, c in ((0, 2), (1, 3)):
+        z = np.abs(d[:, a] - d[:, c]) / np.sqrt(var[:, a] + var[:, c])
+        z = np.nan_to_num(z, nan=0.0, posinf=0.0)
+        flag = (z > z_max) & (z > worst)
+        out[flag] = np.where(ms[flag, a] >= ms[flag, c], a, c)
+        worst = np.where(flag, z, worst)
+    return out
+
+
 def lsm(
     patches: np.ndarray,
     origin: np.ndarray,
@@ -323,6 +369,8 @@ def lsm(
     fit_shape: bool = True,
     background: np.ndarray | None = None,
     weight: np.ndarray | None = None,
+    arm_check: bool = True,
+    arm_z: float = 3.0,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -357,6 +405,13 @@ def lsm(
     weight : (N, h, w) float array, optional
         Prior pixel weights in [0, 1] (e.g. low where the background estimate is uncertain);
         they multiply the robust weights.
+
+    arm_check : bool
+        Crosses only: compare the two halves of each arm (see :func:`_arm_outliers`); where
+        they disagree beyond ``arm_z`` standard deviations, the half that fits worse gets
+        weight 0 and the mark is fitted again from the other three.
+    arm_z : float
+        Threshold of that test.
 
     Returns
     -------
@@ -414,6 +469,27 @@ def lsm(
             todo = todo[~done]
             if todo.size == 0:
                 break
+    if arm_check and shape.kind == "cross" and robust:
+        bad = _arm_outliers(p, data, shape, last, z_max=arm_z)
+        redo = np.where(bad >= 0)[0]
+        if redo.size:
+            geo = _geom(p[redo], tuple(a[redo] for a in data), shape)
+            parts = _parts(shape, geo[4], geo[5])
+            Wp = data[5]
+            Wp[redo] = np.where(parts == bad[redo, None], 0.0, Wp[redo])
+            todo = redo
+            for _ in range(max_iter):
+                sub = tuple(a[todo] for a in data)
+                q = p[todo]
+                dc, sig, st = _step(q, sub, shape, full, robust=True)
+                p[todo] = q
+                for k, v in st.items():
+                    last[k][todo] = v
+                done = dc < np.maximum(tol, 0.2 * np.nan_to_num(sig, nan=0.0))
+                converged[todo[done]] = True
+                todo = todo[~done]
+                if todo.size == 0:
+                    break
     X, Y, G, valid, Sb, _ = data
     vf = valid.astype(np.float32)
     sw = np.maximum(vf.sum(1), 1.0)

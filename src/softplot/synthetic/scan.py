@@ -322,7 +322,8 @@ def _shape_key(s: MarkShape) -> tuple:
     return (s.kind, s.rects.round(12).tobytes(), s.discs.round(12).tobytes())
 
 
-def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np.ndarray, dict]:
+def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
+                marks: bool = True, clip: bool = True) -> tuple[np.ndarray, dict]:
     """Render a synthetic scan of a film frame of ``camera`` with its exact truth.
 
     Parameters
@@ -334,6 +335,13 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
     seed : int
         Seed of every random choice (deformation, scene, defects, grain, noise): the same
         seed and spec give the same pixels and truth.
+    marks : bool
+        False renders the same frame without the marks' images (scene, border, defects and
+        noise as with them; the truth still describes the marks): the scene each mark hides,
+        e.g. for the Cramer-Rao bound of a render (:func:`softplot.marks.crb.render_crb`).
+    clip : bool
+        False (float output, ``spec.bits == 32`` only) keeps grey values beyond [0, 1] that
+        a scanner would saturate: the level a saturated scene really has.
 
     Returns
     -------
@@ -478,7 +486,8 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0) -> tuple[np
                   avoid_radius_mm=1.5 * arm[0] + 0.5, cross_mm=arm)
 
     image = _compose(spec, seed, mapping, scene, (width, height), (fw, fh), s, mark_level,
-                     mask, (m_idx, m_col, m_row, m_val), post_blur, patches)
+                     mask, (m_idx, m_col, m_row, m_val if marks else m_val * 0), post_blur,
+                     patches, clip or spec.bits != 32)
 
     # -- truth ----------------------------------------------------------------------------
     local = _local_contrast(scene, mk, spec.contrast) * luma
@@ -672,7 +681,7 @@ def _rows_film(cu: np.ndarray, cv: np.ndarray, r0: int, r1: int):
 
 
 def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse,
-             post_blur, patches):
+             post_blur, patches, clip=True):
     width, height = size
     fw, fh = format_mm
     channels = 3 if spec.rgb else 1
@@ -729,7 +738,18 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
         if post_blur:
             lo, hi = np.searchsorted(m_row, [r0, r1])
             rr, cc, mv = m_row[lo:hi] - a0, m_col[lo:hi], m_val[lo:hi, None]
-            mark_amp = level - val[rr, cc]  # (k, C): mark minus background, positive film
+            # mark minus background (k, C), positive film. The opaque mark hides the scene,
+            # and both pass the same optics: the image is blur(scene) + (mark - scene) x
+            # blur(mark), to first order with the scene taken as the optically blurred one
+            # (the unblurred scene would put unblurred scene edges into the mark's image)
+            seen = val
+            if sig > 0 and hi > lo:
+                k = 2 * rad + 1
+                seen = cv2.GaussianBlur(val, (k, k), sig, sigmaY=sig,
+                                        borderType=cv2.BORDER_REFLECT_101)
+                if seen.ndim == 2:
+                    seen = seen[:, :, None]
+            mark_amp = level - seen[rr, cc]
             trans = np.ones((a1 - a0, width, 1), np.float32)
         else:
             lo, hi = np.searchsorted(m_row, [a0, a1])
@@ -767,7 +787,8 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
             core[rr - (r0 - a0), cc] += amp * mv
         if noise is not None:
             core = core + np.float32(spec.noise_sigma) * noise.rows(r0, r1)
-        np.clip(core, 0.0, 1.0, out=core)
+        if clip:
+            np.clip(core, 0.0, 1.0, out=core)
         if spec.bits == 32:
             out[r0:r1] = core
         else:
