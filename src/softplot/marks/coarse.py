@@ -311,7 +311,7 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
             cy = np.round(xy[:, 1]).astype(int)[:, None] + ar
             cx = np.clip(cx, 0, image.shape[1] - 1)
             cy = np.clip(cy, 0, image.shape[0] - 1)
-            win = image[cy[:, :, None], cx[:, None, :]].reshape(len(v), -1)
+            win = _gather_windows(image, cy, cx).reshape(len(v), -1)
             ok = win.std(1) >= min_contrast
             xy, v = xy[ok], v[ok]
         out.append(Peaks(xy, v.astype(float), np.full(len(v), sg)))
@@ -321,6 +321,16 @@ def find_peaks(R: np.ndarray, offset: int, min_dist: float, threshold: float,
               np.concatenate([o.sign for o in out]))
     order = np.argsort(-p.score)[:max_peaks]
     return p.select(order)
+
+
+def _gather_windows(image, cy: np.ndarray, cx: np.ndarray) -> np.ndarray:
+    """``image[cy[:, :, None], cx[:, None, :]]`` (float32 grey) by flat indexing (faster)."""
+    src = image.q if isinstance(image, Overview) else image
+    if src.ndim == 2 and src.flags.c_contiguous:
+        win = np.take(src.reshape(-1), cy[:, :, None] * src.shape[1] + cx[:, None, :])
+    else:
+        win = src[cy[:, :, None], cx[:, None, :]]
+    return image.grey(win) if isinstance(image, Overview) else win
 
 
 class _Negated:
@@ -355,7 +365,8 @@ def _local_maxima(R: np.ndarray, kernel: np.ndarray, rad: int, threshold: float,
                 m = (blk >= cv2.dilate(blk, kernel)) & (blk > threshold)
             else:
                 m = (blk <= cv2.erode(blk, kernel)) & (blk < -threshold)
-            iy, ix = np.nonzero(m[a - lo : b - lo])
+            # flat indices (row-major, as np.nonzero, which is far slower on 2-D masks)
+            iy, ix = np.divmod(np.flatnonzero(m[a - lo : b - lo]), W)
             parts[sg][0].append(iy + a)
             parts[sg][1].append(ix)
     return {sg: (np.concatenate(parts[sg][0]), np.concatenate(parts[sg][1]))

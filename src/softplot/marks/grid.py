@@ -180,6 +180,16 @@ class GridFit:
     score: float
 
 
+def _random_triplets(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
+    """``count`` random triplets of distinct indices in ``[0, n)`` (``n >= 3``), (count, 3)."""
+    out = np.empty((0, 3), np.int64)
+    while len(out) < count:
+        t = rng.integers(0, n, (2 * count, 3))
+        t = t[(t[:, 0] != t[:, 1]) & (t[:, 0] != t[:, 2]) & (t[:, 1] != t[:, 2])]
+        out = np.concatenate([out, t])
+    return out[:count]
+
+
 def _fold(a: np.ndarray, period: float) -> np.ndarray:
     return (a + 0.5 * period) % period - 0.5 * period
 
@@ -270,9 +280,13 @@ def fit_grid(
 
     # phase by voting among the strongest peaks
     refs = np.argsort(-score)[: min(60, M)]
-    f_all = (xy[None, :, :] - xy[refs][:, None, :]) @ Binv.T  # (R, M, 2)
-    frac = np.abs(f_all - np.round(f_all))
-    votes = ((frac < 0.15).all(-1) * score[None, :]).sum(1)
+    dx = xy[None, :, 0] - xy[refs, 0][:, None]  # (R, M)
+    dy = xy[None, :, 1] - xy[refs, 1][:, None]
+    on = np.ones(dx.shape, bool)
+    for k in range(2):  # lattice coordinate k of every peak seen from every reference
+        fk = Binv[k, 0] * dx + Binv[k, 1] * dy
+        on &= np.abs(fk - np.round(fk)) < 0.15
+    votes = (on * score[None, :]).sum(1)
     ref = refs[int(np.argmax(votes))]
 
     # affine lattice refinement: p = p0 + B @ (i, j)
@@ -298,14 +312,9 @@ def fit_grid(
     def best_per_node(sel, key_val):
         """Indices of ``sel`` keeping, per lattice node, the peak with the smallest key."""
         order = sel[np.argsort(key_val[sel])]
-        seen: set = set()
-        out = []
-        for i in order:
-            k = (int(idx[i, 0]), int(idx[i, 1]))
-            if k not in seen:
-                seen.add(k)
-                out.append(i)
-        return np.array(sorted(out), int)
+        node_key = idx[order, 0].astype(np.int64) * (1 << 32) + idx[order, 1]
+        first = np.unique(node_key, return_index=True)[1]  # first occurrence of each node
+        return np.sort(order[first]).astype(int)
 
     # least median of squares over exact affine fits to triplets of nodes (their best-scoring
     # peaks; all triplets for a few nodes, 300 random ones otherwise), then least squares on
@@ -324,14 +333,15 @@ def fit_grid(
         if len(ii) <= 22:
             tri = np.array(list(combinations(range(len(ii)), 3)))
         else:
-            tri = np.array([rng.choice(len(ii), 3, replace=False) for _ in range(300)])
+            tri = _random_triplets(rng, len(ii), 300)
         Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
         A3 = Mi[tri]  # (T, 3, 3)
         ok = np.abs(np.linalg.det(A3)) > 1e-9
         if ok.any():
             sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]])  # (T, 3, 2)
-            pred = np.einsum("nk,tkd->tnd", Mi, sol)
-            res_px = np.hypot(*(pred - xy[ii][None]).transpose(2, 0, 1))  # (T, n)
+            # residuals of every node against every triplet's lattice, one coordinate at a
+            # time (two (T, 3) @ (3, n) products)
+            res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[ii, 0], sol[:, :, 1] @ Mi.T - xy[ii, 1])
             med = np.median(res_px, axis=1)
             best = int(np.argmin(med))
             lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
