@@ -175,7 +175,7 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
     noise_floor = 2e-3
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
     signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
-    best = None
+    cands = {}
     for sg in signs:
         pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                threshold=0.2,
@@ -183,13 +183,26 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
                                std_half=max(int(arm_half), 2), min_contrast=noise_floor)
         if len(pk) < 4:
             continue
-        xy = coarse.ov_to_full(pk.xy, f)
-        g = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height), px_per_mm=px_per_mm,
-                          rotate_deg=rotate_deg, margin_px=0.5 * shape_ov.length * f)
-        if g is None:
+        # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
+        # sum of the ``count`` best ones (with a margin for the order of summation)
+        bound = float(np.sort(pk.score)[::-1][: res.count].sum()) * (1.0 + 1e-9) + 1e-9
+        cands[sg] = (pk, bound)
+    # fit the polarity that can score most first; another one only if it could still win
+    fits = {}
+    for sg in sorted(cands, key=lambda k: -cands[k][1]):
+        pk, bound = cands[sg]
+        done = [g.score for g in fits.values() if g is not None]
+        if done and bound < max(done):
             continue
-        if best is None or g.score > best[0].score:
-            best = (g, sg, R, h, pk)
+        xy = coarse.ov_to_full(pk.xy, f)
+        fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
+                                 px_per_mm=px_per_mm, rotate_deg=rotate_deg,
+                                 margin_px=0.5 * shape_ov.length * f)
+    best = None
+    for sg in signs:  # the best score wins, the first polarity on a tie
+        g = fits.get(sg)
+        if g is not None and (best is None or g.score > best[0].score):
+            best = (g, sg, R, h, cands[sg][0])
     return best
 
 
