@@ -3,9 +3,9 @@
 Pipeline for a reseau camera (pixel system throughout, film mm for the certificate):
 
 1. overview: the scan reduced by an integer factor chosen so that a cross line is about one
-   overview pixel wide (built blockwise, no full float copy);
+   overview pixel wide (built blockwise and kept in the scan's own dtype, no float copy);
 2. coarse search: NCC with a cross template rendered from the certificate at the overview's
-   scale; peaks of both signs;
+   scale, computed in strips of rows (small work buffers); peaks of both signs;
 3. grid fit (:mod:`softplot.marks.grid`): lattice scale/rotation/phase, row/col assignment,
    projective film -> pixel model by RANSAC, for each polarity; the better one is the scan's
    polarity (unless given). With a rotation above 2 degrees the NCC is repeated with a rotated
