@@ -10,6 +10,7 @@ as a whole. Overview pixel ``(i, j)`` averages the full-resolution pixels
 
 from __future__ import annotations
 
+import mmap
 from dataclasses import dataclass
 
 import cv2
@@ -33,6 +34,30 @@ def _rows_view(blk: np.ndarray) -> np.ndarray:
                                             blk.shape[-1] * blk.itemsize):
         return blk
     return np.ascontiguousarray(blk)
+
+
+def _release_rows(data: np.ndarray, r0: int, r1: int) -> None:
+    """Drop rows ``[r0, r1)`` of a read-only ``numpy.memmap`` scan from the resident set.
+
+    Once the overview has read a strip, its file pages are not needed in this process; they
+    stay in the system's page cache and are mapped back (minor faults) if touched again, as
+    the fine stage does for the windows around the marks. The scan's pixels are then never
+    resident all at once. Anything else (arrays in memory, writable or copy-on-write maps)
+    is left alone.
+    """
+    mm = getattr(data, "_mmap", None)
+    if (mm is None or getattr(data, "mode", None) != "r" or data.base is not mm
+            or not data.flags.c_contiguous or data.ndim < 2):
+        return
+    try:
+        base = int(data.offset) % mmap.ALLOCATIONGRANULARITY  # array start within the map
+        ps = mmap.PAGESIZE
+        a = -(-(base + r0 * data.strides[0]) // ps) * ps
+        b = (base + r1 * data.strides[0]) // ps * ps
+        if b > a:
+            mm.madvise(mmap.MADV_DONTNEED, a, b - a)
+    except (AttributeError, OSError, ValueError):
+        pass
 
 
 def ov_to_full(xy, factor: int) -> np.ndarray:
@@ -97,6 +122,7 @@ def overview(scan, factor: int, window: tuple[slice, slice] | None = None) -> np
             else:
                 g = red
             np.multiply(g, scale, out=out[a // f : b // f], dtype=np.float32)
+            _release_rows(data, r0 + a, r0 + b)
         else:
             g = scan.grey((rows, cols))
             out[a // f : b // f] = cv2.resize(g, (W, (b - a) // f),
@@ -174,6 +200,7 @@ def overview_compact(scan, factor: int) -> Overview:
         blk = _rows_view(blk)
         q[a // f : b // f] = (cv2.resize(blk, (W, (b - a) // f), interpolation=cv2.INTER_AREA)
                               if f > 1 else blk)
+        _release_rows(data, a, b)
     return Overview(q, scale, scan.min_is_white)
 
 
