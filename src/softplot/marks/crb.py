@@ -26,8 +26,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from softplot.marks.lsm import _NP
 from softplot.marks.template import MarkShape, aperture
+
+#: parameters of the bound: LSM's model on an unsaturated background (centre, affine, blur,
+#: offset, contrast, tilt)
+_NP = 11
 
 __all__ = ["centre_crb", "cross_crb_simple", "effective_noise", "render_crb"]
 

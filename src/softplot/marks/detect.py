@@ -381,6 +381,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     idx = np.where(inside)[0]
     fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
                    max_shift=radius_ov * f + 1.0)
+    _shape_from_neighbours(sc, shape, film[idx], c0[idx], pred[idx], fine, s0, init_err, sign,
+                           rules, radius_ov * f + 1.0)
     timings["lsm"] = time.perf_counter() - t0
 
     xy = np.full((N, 2), np.nan)
@@ -435,6 +437,82 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         dpi_source=dpi_source,
         timings=timings,
     )
+
+
+def _neighbour_affine(film, A, ok, k=12):
+    """Each mark's pixel -> mark-frame affine predicted from its accepted neighbours.
+
+    A local plane in film mm is fitted to the affines of the ``k`` nearest accepted marks
+    (the mark itself left out; weights ``1 / (1 + d^2)``, ``d`` in units of the grid spacing;
+    a second pass down-weights neighbours far from the first prediction) and evaluated at the
+    mark: the affine follows the film's deformation, which varies smoothly. ``film`` (M, 2)
+    mm, ``A`` (M, 2, 2), ``ok`` (M,). Returns (M, 2, 2), NaN where fewer than 6 neighbours.
+    (A local quadratic follows a strong deformation no better and is noisier.)
+    """
+    M = len(film)
+    out = np.full((M, 2, 2), np.nan)
+    good = np.where(ok & np.isfinite(A).all((1, 2)))[0]
+    if good.size < 7:
+        return out
+    kk = min(k + 1, good.size)
+    d, j = cKDTree(film[good]).query(film, k=kk)
+    j = good[j]
+    use = j != np.arange(M)[:, None]
+    # drop the self match (or the farthest, when the mark is not among the good ones)
+    order = np.argsort(~use, axis=1, kind="stable")[:, : kk - 1]
+    j = np.take_along_axis(j, order, 1)
+    d = np.take_along_axis(d, order, 1)
+    unit = float(np.median(d[:, 0])) or 1.0
+    dx = (film[j] - film[:, None, :]) / unit
+    D = np.stack([np.ones(dx.shape[:2]), dx[..., 0], dx[..., 1]], -1)
+    npar = D.shape[-1]
+    V = A[j].reshape(M, -1, 4)
+    w = 1.0 / (1.0 + (d / unit) ** 2)
+
+    def solve(wt):
+        Dw = D * wt[..., None]
+        N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(npar)
+        return np.linalg.solve(N, np.matmul(Dw.transpose(0, 2, 1), V))  # (M, npar, 4)
+
+    coef = solve(w)
+    res = np.linalg.norm(V - np.matmul(D, coef), axis=2)  # (M, k)
+    spread = 1.4826 * float(np.median(res)) + 1e-12
+    coef = solve(w / (1.0 + (res / (3.0 * spread)) ** 2))
+    out = coef[:, 0, :].reshape(M, 2, 2)
+    out[kk - 1 < 6] = np.nan
+    return out
+
+
+def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
+                           max_shift, tol=0.02):
+    """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
+
+    A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
+    smoothly over the film, so its neighbours know it well. A mark not accepted, or whose
+    fitted affine departs from its neighbours' median by more than ``tol`` (relative), was
+    fitted against scene content; it is fitted again with the neighbours' affine held fixed
+    (4 parameters fewer for the scene to pull) and the result replaces the first when
+    accepted. Modifies ``fine`` in place.
+    """
+    cons = _neighbour_affine(film, fine.A, fine.ok)
+    have = np.isfinite(cons).all((1, 2))
+    dev = np.full(len(film), np.inf)
+    fin = have & np.isfinite(fine.A).all((1, 2))
+    if fin.any():
+        dev[fin] = (np.linalg.norm((fine.A[fin] - cons[fin]).reshape(-1, 4), axis=1)
+                    / np.linalg.norm(cons[fin].reshape(-1, 4), axis=1))
+    redo = np.where(have & (~fine.ok | (dev > tol)))[0]
+
+    if redo.size == 0:
+        return
+    start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
+    f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
+                 max_shift=max_shift, fit_shape=False)
+    for j, i in enumerate(redo):
+        if f2.ok[j]:
+            fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], cons[i]
+            fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
+                f2.score[j], f2.cnr[j], True, "")
 
 
 def _transform_json(Hm, rms, n) -> dict:

@@ -8,10 +8,11 @@ with ``T = T(A @ (p - c); s)`` the analytic blurred mark of :mod:`softplot.marks
 (1 on the mark, 0 off it), ``c`` its centre (px), ``A`` the 2x2 pixel -> mark-frame affine
 (rotation, scale, anisotropy, shear), ``s`` the Gaussian edge blur (px; the square pixel
 footprint is modelled exactly across the bars), ``B`` the background under the mark (level
-``a`` and tilt ``gx``, ``gy`` about the reference ``(x_r, y_r)``, the rounded initial centre)
-and ``a + b`` the level of the mark itself: reseau crosses and fiducials are opaque, they
+``a`` and tilt ``gx``, ``gy`` about the reference ``(x_r, y_r)``, the rounded initial centre,
+plus a free level ``sat`` where the background estimate is saturated) and ``a + b`` the level
+of the mark itself: reseau crosses and fiducials are opaque, they
 *replace* the scene rather than add to it, so a scene gradient does not leak into the mark
-(the sign of ``b`` is the polarity: negative for dark marks). 11 parameters per mark, solved by
+(the sign of ``b`` is the polarity: negative for dark marks). 12 parameters per mark, solved by
 Gauss-Newton for all marks at once (arrays of shape (N, P) for N marks of up to P pixels
 each).
 
@@ -32,7 +33,7 @@ from softplot.marks.template import MarkShape, aperture
 __all__ = ["LSMResult", "lsm", "support_mask", "PARAMS"]
 
 #: parameter order of the LSM model
-PARAMS = ("cx", "cy", "a00", "a01", "a10", "a11", "s", "a", "b", "gx", "gy")
+PARAMS = ("cx", "cy", "a00", "a01", "a10", "a11", "s", "a", "b", "gx", "gy", "sat")
 _NP = len(PARAMS)
 
 
@@ -118,13 +119,16 @@ def _parts(shape: MarkShape, u, v) -> np.ndarray:
     return np.where(core, -1, part).astype(np.int8)
 
 
-def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=None):
+def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=None,
+            sat_bg=None, clip=None):
     """Pick each mark's relevant pixels from its patch into padded (N, P) arrays.
 
     Returns ``(X, Y, G, valid, S)``: pixel coordinates relative to ``ref`` (float32), grey
     values (float32, 0 where padded), the validity mask (valid pixels come first in each row)
-    and the scene background estimate under the mark (zeros without ``background``), and
-    the prior pixel weights (``weight``; 1 without it, 0 where padded).
+    and the scene background estimate under the mark (zeros without ``background``), the
+    prior pixel weights (``weight``; 1 without it, 0 where padded), the indicator of a
+    saturated background (``sat_bg``, 0/1) and the censoring code of each grey value (+1 at
+    the upper end of ``clip``, -1 at the lower end, 0 inside).
     """
     n, h, w = patches.shape
     off = (origin - ref).astype(np.float32)
@@ -156,7 +160,13 @@ def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=N
         Wp = valid.astype(np.float32)
     else:
         Wp = np.where(valid, take(weight), 0.0).astype(np.float32)
-    return take(X), take(Y), G, valid, S, Wp
+    Q = np.zeros_like(G) if sat_bg is None else np.where(valid, take(sat_bg), 0.0).astype(
+        np.float32)
+    Cc = np.zeros_like(G)
+    if clip is not None:
+        Cc = np.where(valid & (G >= clip[1] - 1e-6), 1.0, 0.0).astype(np.float32)
+        Cc[valid & (G <= clip[0] + 1e-6)] = -1.0
+    return take(X), take(Y), G, valid, S, Wp, Q, Cc
 
 
 def _tukey(r, scale):
@@ -176,8 +186,9 @@ def _mad(r, valid):
 
 def _contrast(p, data, T=None):
     """Mark level minus the background under it (N,): the signed contrast of each mark."""
-    X, Y, _, valid, S, _ = data
-    bg = S + p[:, 9:10].astype(np.float32) * X + p[:, 10:11].astype(np.float32) * Y
+    X, Y, valid, S = data[0], data[1], data[3], data[4]
+    q = p.astype(np.float32)
+    bg = S + q[:, 9:10] * X + q[:, 10:11] * Y + q[:, 11:12] * data[6]
     wt = valid.astype(np.float32) if T is None else T * valid
     return p[:, 8] - (bg * wt).sum(1) / np.maximum(wt.sum(1), 1e-6)
 
@@ -207,7 +218,8 @@ def _assemble(p, data, g, need_jac=True):
     X, Y = data[0], data[1]
     T, Tu, Tv, Ts, u, v, dx, dy = g
     q = p.astype(np.float32)
-    bg = data[4] + q[:, 9:10] * X + q[:, 10:11] * Y  # scene estimate + tilt, without ``a``
+    # scene estimate + tilt (+ the level above the clip of a saturated scene), without ``a``
+    bg = data[4] + q[:, 9:10] * X + q[:, 10:11] * Y + q[:, 11:12] * data[6]
     M = q[:, 7:8] + bg + (q[:, 8:9] - bg) * T
     if not need_jac:
         return M, T, u, v, None
@@ -226,6 +238,7 @@ def _assemble(p, data, g, need_jac=True):
     J[..., 8] = T
     J[..., 9] = X * (1.0 - T)
     J[..., 10] = Y * (1.0 - T)
+    J[..., 11] = data[6] * (1.0 - T)
     return M, T, u, v, J
 
 
@@ -249,6 +262,9 @@ def _normal(J, w, r, active):
     g[:, off] = 0.0
     idx = np.where(off)[0]
     Nm[:, idx, idx] = 1.0
+    # a parameter without any data (no saturated background around this mark) is pinned
+    diag = np.arange(Nm.shape[1])
+    Nm[:, diag, diag] = np.where(Nm[:, diag, diag] > 0, Nm[:, diag, diag], 1.0)
     return Nm, g
 
 
@@ -274,12 +290,17 @@ def _step(p, data, shape, active, robust, init=False):
         b = cov_tg / var_t
         p[:, 7] = mG - b * mT
         p[:, 8] = b + (data[4] * T * vf).sum(1) / np.maximum((T * vf).sum(1), 1e-6)
-        p[:, 9:11] = 0.0
+        p[:, 9:12] = 0.0
     M, T, u, v, J = _assemble(p, data, geo)
     r = np.where(valid, G - M, 0.0).astype(np.float32)
+    # censored grey values (at the end of the range): they only say "at least this bright"
+    # (or dark); consistent with a model beyond the clip they carry nothing
+    Cc = data[7]
+    cens = ((Cc > 0) & (M >= G)) | ((Cc < 0) & (M <= G))
+    r[cens] = 0.0
     w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32))
     w_rob *= valid
-    w = w_rob * data[5]
+    w = w_rob * data[5] * ~cens
     Nm, g = _normal(J, w, r, active)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
     diag = np.arange(_NP)
@@ -325,10 +346,11 @@ def _arm_outliers(p, data, shape, last, z_max=4.0):
     (N,) int
         Part index (0..3) to drop, or -1.
     """
-    X, Y, G, valid, S, _ = data
+    X, Y, S = data[0], data[1], data[4]
+    valid = data[3]
     T, Tu, Tv, _, u, v, _, _ = _geom(p, data, shape)
     q = p.astype(np.float32)
-    b = q[:, 8:9] - (S + q[:, 9:10] * X + q[:, 10:11] * Y)
+    b = q[:, 8:9] - (S + q[:, 9:10] * X + q[:, 10:11] * Y + q[:, 11:12] * data[6])
     r, w = last["r"], last["w"] * valid
     parts = _parts(shape, u, v)
     n = len(p)
@@ -371,6 +393,8 @@ def lsm(
     weight: np.ndarray | None = None,
     arm_check: bool = True,
     arm_z: float = 3.0,
+    sat_bg: np.ndarray | None = None,
+    clip: tuple[float, float] | None = None,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -412,6 +436,13 @@ def lsm(
         weight 0 and the mark is fitted again from the other three.
     arm_z : float
         Threshold of that test.
+    sat_bg : (N, h, w) array of 0/1, optional
+        Where the background estimate is saturated: the scene there may lie beyond the grey
+        range, so the model adds a free level ``sat`` (one per mark) to the background there;
+        the unsaturated part of the mark's edges against it determines it.
+    clip : (lo, hi), optional
+        The grey range of the scan: values at its ends are censored (Tobit): they count only
+        where the model is inside the range.
 
     Returns
     -------
@@ -434,11 +465,11 @@ def lsm(
     if not fit_shape:
         full[2:6] = False
     capture = np.zeros(_NP, bool)
-    capture[[0, 1, 7, 8, 9, 10]] = True
+    capture[[0, 1, 7, 8, 9, 10, 11]] = True
 
     def gather(margin):
         return _gather(patches, origin, ref, p[:, 0:2] + ref, p[:, 2:6].reshape(n, 2, 2),
-                       shape, margin, background, weight)
+                       shape, margin, background, weight, sat_bg, clip)
 
     # capture stage: wide blur, only position and radiometry, generous pixel margin
     if s_cap > s0:
@@ -474,23 +505,23 @@ def lsm(
         redo = np.where(bad >= 0)[0]
         if redo.size:
             geo = _geom(p[redo], tuple(a[redo] for a in data), shape)
-            parts = _parts(shape, geo[4], geo[5])
+            drop = _parts(shape, geo[4], geo[5]) == bad[redo, None]
             Wp = data[5]
-            Wp[redo] = np.where(parts == bad[redo, None], 0.0, Wp[redo])
+            Wp[redo] = np.where(drop, 0.0, Wp[redo])
             todo = redo
             for _ in range(max_iter):
                 sub = tuple(a[todo] for a in data)
                 q = p[todo]
                 dc, sig, st = _step(q, sub, shape, full, robust=True)
                 p[todo] = q
-                for k, v in st.items():
-                    last[k][todo] = v
+                for k_, v_ in st.items():
+                    last[k_][todo] = v_
                 done = dc < np.maximum(tol, 0.2 * np.nan_to_num(sig, nan=0.0))
                 converged[todo[done]] = True
                 todo = todo[~done]
                 if todo.size == 0:
                     break
-    X, Y, G, valid, Sb, _ = data
+    X, Y, G, valid, Sb = data[:5]
     vf = valid.astype(np.float32)
     sw = np.maximum(vf.sum(1), 1.0)
     npix = valid.sum(1)
@@ -503,7 +534,8 @@ def lsm(
     cov = last["cov"]
 
     # correlation of the data with the fitted mark, the fitted background removed from both
-    B = p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y
+    B = (p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y + p[:, 11:12] * data[6]).astype(
+        np.float32)
     gain = _contrast(p, data, T)
     dG = (G - B) * vf
     dM = (M - B) * vf

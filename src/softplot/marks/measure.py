@@ -84,6 +84,7 @@ class Fine:
     ok: np.ndarray
     reason: list
     lsm: LSMResult | None
+    A: np.ndarray | None = None
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -97,12 +98,14 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     A grey opening (bright marks, ``sign > 0``) or closing (dark marks) with a disc wider than
     the blurred stroke (``width + 5 s + 1`` px) removes the cross bars or ring and keeps every
     scene structure larger than the disc, including sharp edges; a 3x3 mean then lowers its
-    noise. Near a scene edge the estimate may be off by about ``delta`` px of position, so
-    pixels get the prior weight ``1 / (1 + (delta |grad S| / noise)^2)`` (``noise``: the
-    patch's MAD of data minus estimate): scene edges along an arm then carry little weight
-    instead of pulling the centre. Filled marks (dots) have no stroke to remove: the patch
-    median and unit weights are returned. All patches are filtered at once (stacked into one
-    image with a replicated border between them).
+    noise, and where the scene is smooth (a wider mean differs from it by less than about a
+    noise sigma) a ``(d + 4)``-px mean replaces it: the closing of a noisy patch is lumpy on
+    the scale of the disc. Near a scene edge the estimate may be off by about ``delta`` px of
+    position, so pixels get the prior weight ``1 / (1 + (delta |grad S| / noise)^2)``
+    (``noise``: the patch's MAD of data minus estimate): scene edges along an arm then carry
+    little weight instead of pulling the centre. Filled marks (dots) have no stroke to
+    remove: the patch median and unit weights are returned. All patches are filtered at once
+    (stacked into one image with a replicated border between them).
     """
     n, h, w = stack.shape
     fin = np.isfinite(stack)
@@ -119,7 +122,17 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     big = np.pad(q, ((0, 0), (pad, pad), (0, 0)), mode="edge").reshape(n * (h + 2 * pad), w)
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
     op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
-    S = cv2.blur(cv2.morphologyEx(big, op, k, borderType=cv2.BORDER_REPLICATE), (3, 3))
+    C = cv2.morphologyEx(big, op, k, borderType=cv2.BORDER_REPLICATE)
+    S = cv2.blur(C, (3, 3))
+    # the closing of a noisy patch is lumpy on the scale of the disc; where the scene is
+    # smooth a wider mean removes the lumps, near scene edges the 3x3 mean is kept
+    kl = (d + 4) | 1
+    SL = cv2.blur(C, (kl, kl))
+    nz = np.abs(q - S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]).reshape(n, -1)
+    nz = np.maximum(1.4826 * np.median(nz, axis=1), 1e-4).astype(np.float32)
+    nzb = np.repeat(nz, h + 2 * pad)[:, None]
+    al = 1.0 / (1.0 + ((SL - S) / (0.75 * nzb)) ** 2)
+    S = al * SL + (1.0 - al) * S
     gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3)
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
@@ -138,13 +151,16 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene):
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
-    # saturated pixels (at the ends of the grey range) are censored: they only say "at least
-    # this bright" and would flatten the fitted edges; they get no weight
-    sat = (stack >= 1.0 - 1e-6) | (stack <= 1e-6)
-    if sat.any():
-        wt = np.where(sat, 0.0, 1.0 if wt is None else wt).astype(np.float32)
+    # saturated grey values (at the ends of the range) are censored in LSM: they only say "at
+    # least this bright"; where the scene estimate itself is saturated, the scene's true level
+    # beyond the range is a free parameter
+    sat_bg = None
+    if bg is not None:
+        sb = (bg >= 1.0 - 2e-3) | (bg <= 2e-3)
+        if sb.any():
+            sat_bg = sb.astype(np.float32)
     return lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-               background=bg, weight=wt)
+               background=bg, weight=wt, sat_bg=sat_bg, clip=(0.0, 1.0))
 
 
 def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
@@ -221,7 +237,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
     if n == 0:
         z = np.zeros(0)
-        return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None)
+        return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None,
+                    np.zeros((0, 2, 2)))
     if anchor is None:
         anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
     anchor = np.asarray(anchor, float).reshape(-1, 2)
@@ -230,6 +247,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     score = np.full(n, np.nan)
     cnr = np.full(n, np.nan)
     ok = np.zeros(n, bool)
+    Afit = np.full((n, 2, 2), np.nan)
     reason = [""] * n
     fast = min(init_err, 0.6)
     passes = [(np.arange(n), fast)]
@@ -246,10 +264,10 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             good, why = _accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
             for j, i in enumerate(k):
                 if p_i == 0 or good[j]:
-                    xy[i], cov[i] = res.centre[j], res.cov[j]
+                    xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
                     score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
                 if not good[j]:
                     retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
-    return Fine(xy, cov, score, cnr, ok, reason, None)
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit)
