@@ -316,7 +316,8 @@ def _step(p, data, shape, active, robust, init=False):
     s0sq = (w * r * r).sum(1, dtype=float) / red
     cov = Ninv[:, 0:2, 0:2] * s0sq[:, None, None]
     sig = np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0.0))
-    state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq)
+    state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq, Tu=geo[1],
+                 Tv=geo[2])
     # step limits: centre 1.5 px, shape 5 %, blur within a sane range
     dc = np.hypot(dp[:, 0], dp[:, 1])
     k = np.minimum(1.0, 1.5 / np.maximum(dc, 1e-12))
@@ -348,7 +349,8 @@ def _arm_outliers(p, data, shape, last, z_max=4.0):
     """
     X, Y, S = data[0], data[1], data[4]
     valid = data[3]
-    T, Tu, Tv, _, u, v, _, _ = _geom(p, data, shape)
+    # the geometry of each mark's last step (its update was below a fifth of its sigma)
+    Tu, Tv, u, v = last["Tu"], last["Tv"], last["u"], last["v"]
     q = p.astype(np.float32)
     b = q[:, 8:9] - (S + q[:, 9:10] * X + q[:, 10:11] * Y + q[:, 11:12] * data[6])
     r, w = last["r"], last["w"] * valid
