@@ -403,8 +403,16 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
             reason[i] = fine.reason[k] or "not found"
 
     sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    floor_px = max(0.1, OUTLIER_FLOOR_MM * ppm)
     Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, sigma,
-                                         floor_px=max(0.1, OUTLIER_FLOOR_MM * ppm))
+                                         floor_px=floor_px)
+    A_fit = A0.copy()
+    A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
+    if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
+               init_err, sign, rules, radius_ov * f + 1.0):
+        sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+        Hm, residual, rms = _reject_outliers(film, xy, status, reason, Hm, sigma,
+                                             floor_px=floor_px)
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -566,6 +574,64 @@ def _local_prediction(film, r, k_max=16, sigma=None):
     return solve(w / (1.0 + (dev[j] / (3.0 * spread)) ** 2))
 
 
+def _spread(dev, edge):
+    """Robust spread (1.4826 x median) of departures, separately for the grid's outline."""
+    spread = np.full(len(dev), 1.4826 * np.median(dev))
+    for grp in (edge, ~edge):
+        if grp.sum() >= 8:
+            spread[grp] = 1.4826 * np.median(dev[grp])
+    return spread
+
+
+def _outline(film):
+    """Marks on the outline of the certificate's grid (M,) bool."""
+    lo, hi = film.min(0), film.max(0)
+    tol = 1e-6 * float(np.max(hi - lo) + 1.0)
+    return ((np.abs(film - lo) < tol) | (np.abs(film - hi) < tol)).any(1)
+
+
+def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
+            sign, rules, max_shift):
+    """Measure rejected crosses again from three of their four half-arms.
+
+    A cross rejected by the outlier test was usually pulled by scene content along one
+    half-arm. Each rejected cross is fitted four times, each time without one half-arm, from
+    the position its neighbours predict; a fit that passes the acceptance tests and lies within
+    the outlier test's own threshold of that prediction is a measurement of the cross by its
+    clean parts (of several such, the best-correlated). Modifies the arrays in place; returns
+    whether any cross was recovered.
+    """
+    st = np.array(status)
+    rej = np.where(st == "rejected")[0]
+    meas = np.where(st == "measured")[0]
+    if rej.size == 0 or meas.size < 8:
+        return False
+    r = xy - grid.apply_h(Hm, film)
+    ids = np.concatenate([meas, rej])
+    pred = _local_prediction(film[ids], r[ids], sigma=sigma[ids])
+    edge = _outline(film)
+    dev_m = np.hypot(*(r[meas] - pred[: meas.size]).T)
+    spread = _spread(dev_m, edge[meas])  # constant within each group
+    s_in = float(spread[~edge[meas]][0]) if (~edge[meas]).any() else float(spread[0])
+    s_out = float(spread[edge[meas]][0]) if edge[meas].any() else s_in
+    sp_rej = np.where(edge[rej], s_out, s_in)
+    target = grid.apply_h(Hm, film[rej]) + pred[meas.size :]
+    best = np.full(rej.size, -np.inf)
+    for k in range(4):
+        f2 = measure(sc, shape, target, A[rej], s0, init_err, sign, rules, anchor=target,
+                     max_shift=max_shift, drop_part=k)
+        sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
+        thr = np.maximum(np.maximum(3.0 * sp_rej, floor_px), np.minimum(4.5 * sp_rej, 4.0 * sg))
+        d = np.hypot(*(f2.xy - target).T)
+        good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best)
+        for j in np.where(good)[0]:
+            i = rej[j]
+            best[j] = f2.score[j]
+            xy[i], cov[i] = f2.xy[j], f2.cov[j]
+            status[i], reason[i] = "measured", ""
+    return bool(np.isfinite(best).any())
+
+
 def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     """Refit the global model to the measured marks; flag marks that disagree with it.
 
@@ -580,9 +646,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     """
     Hm = H0
     n_max = max(1, len(film) // 10)
-    lo, hi = film.min(0), film.max(0)
-    tol = 1e-6 * float(np.max(hi - lo) + 1.0)
-    edge = ((np.abs(film - lo) < tol) | (np.abs(film - hi) < tol)).any(1)
+    edge = _outline(film)
     for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
         if m.sum() < 8:
@@ -594,10 +658,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         dev = np.hypot(*(r[idx] - pred).T)
         # marks on the outline of the grid are predicted by extrapolation, which a strong
         # deformation makes worse than the interpolation inside: each group its own spread
-        spread = np.full(len(idx), 1.4826 * np.median(dev))
-        for grp in (edge[idx], ~edge[idx]):
-            if grp.sum() >= 8:
-                spread[grp] = 1.4826 * np.median(dev[grp])
+        spread = _spread(dev, edge[idx])
         sg = np.nan_to_num(sigma[idx], nan=1.0)
         thr = np.maximum(np.maximum(3.0 * spread, floor_px), np.minimum(4.5 * spread, 4.0 * sg))
         bad = dev > thr

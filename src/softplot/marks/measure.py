@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from softplot.marks.lsm import LSMResult, lsm
+from softplot.marks.lsm import LSMResult, _parts, lsm
 from softplot.marks.template import MarkShape
 
 __all__ = ["patches", "Fine", "measure", "AcceptRules"]
@@ -146,14 +146,26 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     return np.ascontiguousarray(S), wts.astype(np.float32)
 
 
-def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene):
-    """Patches, scene background and LSM for a set of marks."""
+def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None):
+    """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
+    each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0)."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
+    if drop_part is not None and shape.kind == "cross":
+        h = stack.shape[1]
+        jj = np.arange(h, dtype=float)[None, None, :]
+        ii = np.arange(h, dtype=float)[None, :, None]
+        dx = jj - (c0[:, 0] - origin[:, 0])[:, None, None]
+        dy = ii - (c0[:, 1] - origin[:, 1])[:, None, None]
+        A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
+        u = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
+        v = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+        keep = _parts(shape, u, v) != drop_part
+        wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
     # saturated grey values (at the ends of the range) are censored in LSM: they only say "at
     # least this bright"; where the scene estimate itself is saturated, the scene's true level
     # beyond the range is a free parameter
@@ -206,7 +218,8 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
 def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
-            max_shift: float | None = None, chunk: int = 40) -> Fine:
+            max_shift: float | None = None, chunk: int = 40,
+            drop_part: int | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of ``chunk`` (bounded memory). A first pass trusts ``c0`` to
@@ -233,6 +246,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     anchor, max_shift : (N, 2) and float, optional
         A fitted centre farther than ``max_shift`` px from ``anchor`` (the model's prediction)
         is not accepted; default ``c0`` and ``max_shift_factor * init_err + 1``.
+    drop_part : int, optional
+        Crosses only: one half-arm (0: +u, 1: +v, 2: -u, 3: -v of the mark frame) gets weight
+        0, so the mark is measured from the other three.
     """
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
@@ -263,7 +279,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             # the retry starts from the model's prediction (the anchor): the first start may
             # have been a scene feature
             start = c0[k] if p_i == 0 else anchor[k]
-            res = _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene)
+            res = _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene, drop_part)
             good, why = _accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
             for j, i in enumerate(k):
                 if p_i == 0 or good[j]:
