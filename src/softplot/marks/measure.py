@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from softplot.marks.coarse import _release_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm
 from softplot.marks.template import MarkShape
 
@@ -52,6 +53,8 @@ def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarra
         if xb <= xa or yb <= ya:
             continue
         out[i, ya - y0 : yb - y0, xa - x0 : xb - x0] = scan.grey((slice(ya, yb), slice(xa, xb)))
+    # the rows these windows read are not needed resident any more (memory-mapped scans)
+    _release_rows(data, max(int(origin[:, 1].min()), 0), min(int(origin[:, 1].max()) + size, H))
     return out, origin.astype(float)
 
 
