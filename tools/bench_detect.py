@@ -131,7 +131,9 @@ def child(path: str, camera: str, mode: str, warm: str) -> None:
     from softplot.errors import SoftplotError
     from softplot.io import load_scan
     from softplot.marks import detect
+    from softplot.runtime import tune_allocator
 
+    tune_allocator()  # as the softplot command does
     leftover = 0
     if mode == "warm":
         anon0 = _status_kib("RssAnon")
@@ -190,6 +192,9 @@ def main() -> None:
     cases = [c for c in a.cases.split(",") if c]
     from softplot.io import load_scan
     from softplot.marks import detect
+    from softplot.runtime import tune_allocator
+
+    tune_allocator()  # the allocator setting the softplot command applies at start
 
     print(f"load average at start: {_load()} (2 cores; figures taken above 1 are provisional)")
     with tempfile.TemporaryDirectory(prefix="bench_detect_") as tmp:

@@ -52,6 +52,9 @@ for _name in COMMANDS:
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: run the CLI, turning :class:`SoftplotError` into exit code 2."""
+    from softplot.runtime import tune_allocator
+
+    tune_allocator()
     try:
         rv = cli.main(args=argv, prog_name="softplot", standalone_mode=False)
     except SoftplotError as exc:

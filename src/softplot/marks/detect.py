@@ -45,33 +45,6 @@ MM_PER_INCH = 25.4
 OUTLIER_FLOOR_MM = 0.0025
 
 
-_MALLOC_TUNED = False
-
-
-def _tune_malloc() -> None:
-    """Stop glibc from returning every freed work array to the system at once (Linux only).
-
-    The fine stage allocates many short-lived arrays of 0.1-2 MB. With glibc's defaults
-    (heap trimmed whenever 128 kB lie free at its top, blocks above 128 kB mapped and unmapped
-    one by one) each of them is paged in afresh: a third of the fine stage's time went to page
-    faults. Keeping up to 32 MB of freed heap and mapping only blocks above 8 MB removes that
-    without raising the peak (the heap never holds more than the largest working set).
-    Process-wide and set once; a no-op where ``mallopt`` is missing.
-    """
-    global _MALLOC_TUNED
-    if _MALLOC_TUNED:
-        return
-    _MALLOC_TUNED = True
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 8 << 20)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, 32 << 20)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        pass
-
-
 class DetectionError(SoftplotError):
     """The marks of the certificate cannot be found on the scan (message: expected vs found)."""
 
@@ -243,7 +216,6 @@ def detect(
     Detection
     """
     t0 = time.perf_counter()
-    _tune_malloc()
     cam = load_camera(camera)
     sc = as_scan(scan, dpi=dpi)
     if polarity not in ("auto", "positive", "negative"):
