@@ -251,11 +251,15 @@ def _model(p, data, shape, need_jac=True):
 
 
 def _normal(J, w, r, active):
-    """Weighted normal equations (float64) with inactive parameters pinned."""
-    Jw = J * w[..., None]
-    JwT = Jw.transpose(0, 2, 1)
-    Nm = np.matmul(JwT, J).astype(float)
-    g = np.matmul(JwT, r[..., None])[..., 0].astype(float)
+    """Weighted normal equations (float64) with inactive parameters pinned.
+
+    ``J`` is scaled by ``sqrt(w)`` in place (it is not used afterwards): no weighted copy.
+    """
+    sw = np.sqrt(w)
+    J *= sw[..., None]
+    JT = J.transpose(0, 2, 1)
+    Nm = np.matmul(JT, J).astype(float)
+    g = np.matmul(JT, (sw * r)[..., None])[..., 0].astype(float)
     off = ~active
     Nm[:, off, :] = 0.0
     Nm[:, :, off] = 0.0
