@@ -102,3 +102,29 @@ def test_cli_refuses_to_overwrite_an_input(scans):
     r = run(str(a), "--camera", "rollei-6006", "--json", str(a))
     assert r.returncode == 2 and "refusing" in r.stderr
     assert a.stat().st_size > 1000
+
+
+def test_cli_rotate_and_given_polarity(scans):
+    """``--rotate 90 --polarity negative`` on a quarter-turned negative: every cross measured,
+    row 0 still the top row of the upright photo; the wrong polarity finds no reseau (exit 2)."""
+    d, _, (b, tb) = scans
+    img = cv2.imread(str(b), cv2.IMREAD_UNCHANGED)
+    turned = d / "rb-turned.tif"
+    save_tiff(turned, np.ascontiguousarray(np.rot90(img, 1)), dpi=650)
+    out = d / "rb-turned.json"
+    r = run(str(turned), "--camera", "rollei-6006", "--rotate", "90", "--polarity", "negative",
+            "--json", str(out))
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["polarity"] == "negative"
+    marks = {m["name"]: m for m in doc["marks"] if m["status"] == "measured"}
+    assert len(marks) >= 120
+    W = img.shape[1]
+    for t in json.loads(tb.read_text())["marks"]:
+        if t["name"] in marks:  # a counter-clockwise quarter turn: (x, y) -> (y, W - 1 - x)
+            m = marks[t["name"]]
+            assert np.hypot(m["x"] - t["y"], m["y"] - (W - 1 - t["x"])) < 0.1, t["name"]
+    wrong = run(str(turned), "--camera", "rollei-6006", "--rotate", "90", "--polarity",
+                "positive", "--json", str(d / "rb-wrong.json"))
+    assert wrong.returncode == 2
+    assert len(wrong.stderr.strip().splitlines()) == 1 and "reseau" in wrong.stderr

@@ -388,6 +388,13 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
+    if n_meas < max(4, 0.2 * len(idx)):
+        # a lattice of candidates was found, but the crosses do not hold up at full
+        # resolution (scene texture, the wrong polarity or the wrong camera)
+        raise DetectionError(
+            f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
+            f"{_polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
+            f"{n_meas} of the {len(idx)} inside the scan")
     if n_meas < N:
         warnings.append(f"{N - n_meas} of {N} crosses not measured")
     timings["total"] = time.perf_counter() - t0
