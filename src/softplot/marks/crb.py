@@ -46,6 +46,39 @@ def effective_noise(noise_sigma: float, bits: int | None) -> float:
     return float(np.sqrt(noise_sigma**2 + q * q / 12.0))
 
 
+def _centre_variance(shape, A, dx, dy, blur, b, noise, mark_level=None, clip=None):
+    """``(var_x + var_y) / 2`` of the centre under LSM's model, from the Fisher information.
+
+    ``dx``, ``dy``: pixel offsets from the true centre (any equal shapes); ``A`` the pixel ->
+    mark-frame affine; ``b``: mark minus background, a number or per pixel. The 11 parameters
+    are LSM's (centre, affine, blur, background and mark levels, background tilt). With
+    ``clip`` (and ``mark_level``), pixels are weighted by their censored information
+    (:func:`_censored_information`). NaN if the information matrix is singular.
+    """
+    dx = np.asarray(dx, float)
+    dy = np.asarray(dy, float)
+    u = (A[0, 0] * dx + A[0, 1] * dy).astype(np.float32)
+    v = (A[1, 0] * dx + A[1, 1] * dy).astype(np.float32)
+    ap = tuple(np.float32(q) for q in aperture(A))
+    T, Tu, Tv, Ts = (np.asarray(t, float) for t in shape.evaluate(u, v, np.float32(blur),
+                                                                  aperture=ap))
+    b = np.broadcast_to(np.asarray(b, float), T.shape)
+    J = np.stack([
+        -b * (Tu * A[0, 0] + Tv * A[1, 0]), -b * (Tu * A[0, 1] + Tv * A[1, 1]),
+        b * Tu * dx, b * Tu * dy, b * Tv * dx, b * Tv * dy, b * Ts,
+        1.0 - T, T, dx * (1.0 - T), dy * (1.0 - T)], -1).reshape(-1, _NP)
+    wt = np.ones(J.shape[0])
+    if clip is not None:
+        mu = ((mark_level - b) * (1.0 - T) + mark_level * T).ravel()
+        wt = _censored_information(np.minimum(clip[1] - mu, mu - clip[0]) / noise)
+    F = (J * wt[:, None]).T @ J / noise**2
+    try:
+        cov = np.linalg.inv(F)
+    except np.linalg.LinAlgError:
+        return float("nan")
+    return float(0.5 * (cov[0, 0] + cov[1, 1]))
+
+
 def centre_crb(shape: MarkShape, blur: float, contrast: float, noise: float,
                A=None, phases: int = 4, seed: int = 0) -> float:
     """Cramér-Rao bound (px) of the centre of ``shape`` under the full LSM model.
@@ -71,32 +104,11 @@ def centre_crb(shape: MarkShape, blur: float, contrast: float, noise: float,
     yy, xx = np.mgrid[-half : half + 1, -half : half + 1].astype(np.float64)
     rng = np.random.default_rng(seed)
     out = []
-    ap = tuple(np.float32(v) for v in aperture(A))
     for _ in range(phases):
         c = rng.uniform(-0.5, 0.5, 2)
         dx = (xx - c[0]).astype(np.float32)
         dy = (yy - c[1]).astype(np.float32)
-        u = A[0, 0] * dx + A[0, 1] * dy
-        v = A[1, 0] * dx + A[1, 1] * dy
-        T, Tu, Tv, Ts = (np.asarray(t, float) for t in shape.evaluate(u, v, np.float32(blur),
-                                                                      aperture=ap))
-        b = contrast
-        J = np.empty(T.shape + (_NP,))
-        J[..., 0] = -b * (Tu * A[0, 0] + Tv * A[1, 0])
-        J[..., 1] = -b * (Tu * A[0, 1] + Tv * A[1, 1])
-        J[..., 2] = b * Tu * dx
-        J[..., 3] = b * Tu * dy
-        J[..., 4] = b * Tv * dx
-        J[..., 5] = b * Tv * dy
-        J[..., 6] = b * Ts
-        J[..., 7] = 1.0
-        J[..., 8] = T
-        J[..., 9] = xx * (1 - T)
-        J[..., 10] = yy * (1 - T)
-        J = J.reshape(-1, _NP)
-        F = J.T @ J / noise**2
-        cov = np.linalg.inv(F)
-        out.append(0.5 * (cov[0, 0] + cov[1, 1]))
+        out.append(_centre_variance(shape, A, dx, dy, blur, contrast, noise))
     return float(np.sqrt(np.mean(out)))
 
 
@@ -174,25 +186,8 @@ def render_crb(scene: np.ndarray, centres: np.ndarray, A: np.ndarray, shape: Mar
         B = scene[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1]
         yy, xx = np.mgrid[y0 : y0 + 2 * half + 1, x0 : x0 + 2 * half + 1].astype(float)
         dx, dy = xx - c[0], yy - c[1]
-        u = Ai[0, 0] * dx + Ai[0, 1] * dy
-        v = Ai[1, 0] * dx + Ai[1, 1] * dy
-        ap = tuple(np.float32(q) for q in aperture(Ai))
-        T, Tu, Tv, Ts = (np.asarray(t, float) for t in shape.evaluate(
-            u.astype(np.float32), v.astype(np.float32), np.float32(blur), aperture=ap))
-        b = mark_level - B
-        J = np.stack([
-            -b * (Tu * Ai[0, 0] + Tv * Ai[1, 0]), -b * (Tu * Ai[0, 1] + Tv * Ai[1, 1]),
-            b * Tu * dx, b * Tu * dy, b * Tv * dx, b * Tv * dy, b * Ts,
-            1.0 - T, T, dx * (1.0 - T), dy * (1.0 - T)], -1).reshape(-1, _NP)
-        wt = np.ones(J.shape[0])
-        if clip is not None:
-            mu = (B * (1.0 - T) + mark_level * T).ravel()
-            z = np.minimum(clip[1] - mu, mu - clip[0]) / noise
-            wt = _censored_information(z)
-        F = (J * wt[:, None]).T @ J / noise**2
-        try:
-            cov = np.linalg.inv(F)
-        except np.linalg.LinAlgError:
-            continue
-        out[i] = float(np.sqrt(max(0.5 * (cov[0, 0] + cov[1, 1]), 0.0)))
+        var = _centre_variance(shape, Ai, dx, dy, blur, mark_level - B, noise, mark_level,
+                               clip)
+        if np.isfinite(var):
+            out[i] = float(np.sqrt(max(var, 0.0)))
     return out
