@@ -429,45 +429,20 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
 def _neighbour_affine(film, A, ok, k=12):
     """Each mark's pixel -> mark-frame affine predicted from its accepted neighbours.
 
-    A local plane in film mm is fitted to the affines of the ``k`` nearest accepted marks
-    (the mark itself left out; weights ``1 / (1 + d^2)``, ``d`` in units of the grid spacing;
-    a second pass down-weights neighbours far from the first prediction) and evaluated at the
-    mark: the affine follows the film's deformation, which varies smoothly. ``film`` (M, 2)
-    mm, ``A`` (M, 2, 2), ``ok`` (M,). Returns (M, 2, 2), NaN where fewer than 6 neighbours.
-    (A local quadratic follows a strong deformation no better and is noisier.)
+    A local plane in film mm (:func:`_local_fit`) through the affines of the ``k`` nearest
+    accepted marks, the mark itself left out, in two passes (the second lowers neighbours far
+    from their own prediction): the affine follows the film's deformation, which varies
+    smoothly. ``film`` (M, 2) mm, ``A`` (M, 2, 2), ``ok`` (M,). Returns (M, 2, 2), NaN where
+    fewer than 7 marks are accepted. (A local quadratic follows a strong deformation no better
+    and is noisier.)
     """
-    M = len(film)
-    out = np.full((M, 2, 2), np.nan)
     good = np.where(ok & np.isfinite(A).all((1, 2)))[0]
     if good.size < 7:
-        return out
-    kk = min(k + 1, good.size)
-    d, j = cKDTree(film[good]).query(film, k=kk)
-    j = good[j]
-    use = j != np.arange(M)[:, None]
-    # drop the self match (or the farthest, when the mark is not among the good ones)
-    order = np.argsort(~use, axis=1, kind="stable")[:, : kk - 1]
-    j = np.take_along_axis(j, order, 1)
-    d = np.take_along_axis(d, order, 1)
-    unit = float(np.median(d[:, 0])) or 1.0
-    dx = (film[j] - film[:, None, :]) / unit
-    D = np.stack([np.ones(dx.shape[:2]), dx[..., 0], dx[..., 1]], -1)
-    npar = D.shape[-1]
-    V = A[j].reshape(M, -1, 4)
-    w = 1.0 / (1.0 + (d / unit) ** 2)
-
-    def solve(wt):
-        Dw = D * wt[..., None]
-        N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(npar)
-        return np.linalg.solve(N, np.matmul(Dw.transpose(0, 2, 1), V))  # (M, npar, 4)
-
-    coef = solve(w)
-    res = np.linalg.norm(V - np.matmul(D, coef), axis=2)  # (M, k)
-    spread = 1.4826 * float(np.median(res)) + 1e-12
-    coef = solve(w / (1.0 + (res / (3.0 * spread)) ** 2))
-    out = coef[:, 0, :].reshape(M, 2, 2)
-    out[kk - 1 < 6] = np.nan
-    return out
+        return np.full((len(film), 2, 2), np.nan)
+    val = A[good].reshape(-1, 4)
+    first = _local_fit(film[good], film[good], val, k, degree=1)
+    dev = np.linalg.norm(val - first, axis=1)
+    return _local_fit(film, film[good], val, k, degree=1, n_dev=dev).reshape(-1, 2, 2)
 
 
 def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
@@ -514,43 +489,54 @@ def _transform_json(Hm, rms, n) -> dict:
     }
 
 
+def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None):
+    """Values at query points from a weighted local polynomial through their neighbours.
+
+    For each query point (``q_film`` (Q, 2) mm) a polynomial in film mm (plane for
+    ``degree=1``; quadratic for ``degree=2`` when at least 9 neighbours) is fitted to the values
+    ``n_val`` (M, C) of its ``k`` nearest neighbours ``n_film`` (M, 2), the query point itself
+    left out, with weights ``1/(1 + d^2)`` (``d`` in units of the median neighbour spacing),
+    lowered for imprecise neighbours (``n_sigma`` (M,), against the typical one) and for
+    neighbours far from their own prediction (``n_dev`` (M,), against 3x its robust spread).
+    Returns (Q, C).
+    """
+    n_val = np.asarray(n_val, float).reshape(len(n_film), -1)
+    k = min(k_max, len(n_film) - 1)
+    d, j = cKDTree(n_film).query(q_film, k=k + 1)
+    # leave the query point out (a zero-distance match), else the farthest neighbour
+    drop = np.where(d[:, 0] < 1e-9, 0, k)
+    keep = np.arange(k + 1)[None, :] != drop[:, None]
+    d = d[keep].reshape(-1, k)
+    j = j[keep].reshape(-1, k)
+    unit = float(np.median(d[:, 0])) or 1.0
+    dx = (n_film[j] - np.asarray(q_film)[:, None, :]) / unit  # (Q, k, 2)
+    cols = [np.ones(d.shape), dx[..., 0], dx[..., 1]]
+    if degree >= 2 and k >= 9:
+        cols += [dx[..., 0] ** 2, dx[..., 0] * dx[..., 1], dx[..., 1] ** 2]
+    D = np.stack(cols, -1)  # (Q, k, p)
+    w = 1.0 / (1.0 + (d / unit) ** 2)
+    if n_sigma is not None:
+        sg = np.nan_to_num(np.asarray(n_sigma, float), nan=1.0)
+        w = w / (1.0 + (sg[j] / (float(np.median(sg)) + 1e-6)) ** 2)
+    if n_dev is not None:
+        spread = 1.4826 * float(np.median(n_dev)) + 1e-12
+        w = w / (1.0 + (n_dev[j] / (3.0 * spread)) ** 2)
+    Dw = D * w[..., None]
+    N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(D.shape[-1])
+    return np.linalg.solve(N, np.matmul(Dw.transpose(0, 2, 1), n_val[j]))[:, 0, :]
+
+
 def _local_prediction(film, r, k_max=16, sigma=None):
     """Leave-one-out prediction of each residual from a local quadratic fit to its neighbours.
 
     ``film`` (M, 2) mm, ``r`` (M, 2) px. A smooth film deformation is locally quadratic to a
-    good approximation; the fit uses the ``k`` nearest other marks (weights ``1/(1 + d^2)`` with
-    ``d`` in units of the median neighbour distance). Returns the predicted residuals (M, 2).
+    good approximation (:func:`_local_fit`). A second pass lowers the weight of neighbours
+    that depart from their own prediction (one bad neighbour must not condemn a good mark, at
+    a corner especially). Returns the predicted residuals (M, 2).
     """
-    M = len(film)
-    k = min(k_max, M - 1)
-    d, j = cKDTree(film).query(film, k=k + 1)
-    d, j = d[:, 1:], j[:, 1:]
-    unit = float(np.median(d[:, 0])) or 1.0
-    dx = (film[j] - film[:, None, :]) / unit  # (M, k, 2)
-    nparam = 6 if k >= 9 else 3
-    cols = [np.ones((M, k)), dx[..., 0], dx[..., 1]]
-    if nparam == 6:
-        cols += [dx[..., 0] ** 2, dx[..., 0] * dx[..., 1], dx[..., 1] ** 2]
-    D = np.stack(cols, -1)  # (M, k, p)
-    w = 1.0 / (1.0 + (d / unit) ** 2)
-    if sigma is not None:
-        # imprecise neighbours count less (their variance against the typical one)
-        sg = np.nan_to_num(np.asarray(sigma, float), nan=1.0)
-        typ = float(np.median(sg)) + 1e-6
-        w = w / (1.0 + (sg[j] / typ) ** 2)
-
-    def solve(wt):
-        Dw = D * wt[..., None]
-        N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(nparam)
-        rhs = np.matmul(Dw.transpose(0, 2, 1), r[j])  # (M, p, 2)
-        return np.linalg.solve(N, rhs)[:, 0, :]
-
-    pred = solve(w)
-    # second pass: neighbours that depart from their own prediction count less (one bad
-    # neighbour must not condemn a good mark, at a corner especially)
+    pred = _local_fit(film, film, r, k_max, 2, n_sigma=sigma)
     dev = np.hypot(*(r - pred).T)
-    spread = 1.4826 * float(np.median(dev)) + 1e-9
-    return solve(w / (1.0 + (dev[j] / (3.0 * spread)) ** 2))
+    return _local_fit(film, film, r, k_max, 2, n_sigma=sigma, n_dev=dev)
 
 
 def _spread(dev, edge):

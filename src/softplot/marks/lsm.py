@@ -30,7 +30,7 @@ import numpy as np
 
 from softplot.marks.template import MarkShape, aperture
 
-__all__ = ["LSMResult", "lsm", "support_mask", "PARAMS"]
+__all__ = ["LSMResult", "lsm", "support_mask", "patch_frame", "PARAMS"]
 
 #: parameter order of the LSM model
 PARAMS = ("cx", "cy", "a00", "a01", "a10", "a11", "s", "a", "b", "gx", "gy", "sat")
@@ -110,6 +110,22 @@ def support_mask(shape: MarkShape, u, v, margin: float) -> np.ndarray:
     return r <= shape.extent + margin
 
 
+def patch_frame(origin, c, A, shape3):
+    """Mark-frame coordinates ``(u, v)`` (N, h, w) float32 of every pixel of N patches.
+
+    ``origin`` (N, 2): pixel (x, y) of each patch's element [0, 0]; ``c`` (N, 2): mark
+    centres (pixel system); ``A`` (N, 2, 2): pixel -> mark-frame affines.
+    """
+    n, h, w = shape3
+    cl = (np.asarray(c, float) - origin).astype(np.float32)
+    A = np.asarray(A, np.float32).reshape(n, 2, 2)
+    dx = np.arange(w, dtype=np.float32)[None, None, :] - cl[:, 0, None, None]
+    dy = np.arange(h, dtype=np.float32)[None, :, None] - cl[:, 1, None, None]
+    u = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
+    v = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+    return u, v
+
+
 def _parts(shape: MarkShape, u, v) -> np.ndarray:
     """Index of the part (0..K-1) each mark-frame point belongs to (-1: centre square)."""
     if shape.kind != "cross":
@@ -136,12 +152,7 @@ def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=N
     ii = np.arange(h, dtype=np.float32)
     X = np.broadcast_to(off[:, 0, None, None] + jj[None, None, :], (n, h, w))
     Y = np.broadcast_to(off[:, 1, None, None] + ii[None, :, None], (n, h, w))
-    cl = (c - ref).astype(np.float32)
-    dx = X - cl[:, 0, None, None]
-    dy = Y - cl[:, 1, None, None]
-    A = A.astype(np.float32)
-    u = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
-    v = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+    u, v = patch_frame(origin, c, A, (n, h, w))
     m = support_mask(shape, u, v, margin) & np.isfinite(patches)
     m = m.reshape(n, -1)
     counts = m.sum(1)

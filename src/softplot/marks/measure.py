@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from softplot.marks.coarse import _release_rows
-from softplot.marks.lsm import LSMResult, _parts, lsm
+from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame
 from softplot.marks.template import MarkShape
 
 __all__ = ["patches", "Fine", "measure", "AcceptRules"]
@@ -159,14 +159,8 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
     if drop_part is not None and shape.kind == "cross":
-        h = stack.shape[1]
-        jj = np.arange(h, dtype=float)[None, None, :]
-        ii = np.arange(h, dtype=float)[None, :, None]
-        dx = jj - (c0[:, 0] - origin[:, 0])[:, None, None]
-        dy = ii - (c0[:, 1] - origin[:, 1])[:, None, None]
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
-        u = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
-        v = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+        u, v = patch_frame(origin, c0, A, stack.shape)
         keep = _parts(shape, u, v) != drop_part
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
     # saturated grey values (at the ends of the range) are censored in LSM: they only say "at
