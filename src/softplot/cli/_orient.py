@@ -34,6 +34,12 @@ def angles_option(f):
     )(f)
 
 
+def input_option(flag: str, dest: str, help: str):  # noqa: A002
+    """A required input-file option (``flag`` FILE, stored as ``dest``, a Path)."""
+    return click.option(flag, dest, required=True,
+                        type=click.Path(dir_okay=False, path_type=Path), help=help)
+
+
 def json_option(f):
     """The ``--json OUT.json`` option."""
     return click.option(

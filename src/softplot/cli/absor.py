@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 
@@ -12,6 +10,7 @@ from softplot.cli._orient import (
     ang_out,
     angles_option,
     finite_or_none,
+    input_option,
     json_option,
     read_table,
     report,
@@ -22,19 +21,11 @@ from softplot.orientation.absolute import PARAMS, absolute_orientation
 
 
 @click.command("absor")
-@click.option(
-    "--model",
-    "model_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,x,y,z: model coordinates.",
-)
-@click.option(
+@input_option("--model", "model_path", "CSV name,x,y,z: model coordinates.")
+@input_option(
     "--control",
     "gcp_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates (a blank X,Y or Z: not observed).",
+    "CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates (a blank X,Y or Z: not observed).",
 )
 @alpha_option
 @angles_option

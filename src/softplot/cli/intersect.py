@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 
@@ -12,6 +10,7 @@ from softplot.cli._orient import (
     alpha_option,
     ang_in,
     angles_option,
+    input_option,
     json_option,
     read_table,
     report,
@@ -23,19 +22,15 @@ from softplot.orientation.intersection import intersect
 
 
 @click.command("intersect")
-@click.option(
+@input_option(
     "--photos",
     "photos_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV photo,X0,Y0,Z0,omega,phi,kappa,c (angles in --angles units, c in mm).",
+    "CSV photo,X0,Y0,Z0,omega,phi,kappa,c (angles in --angles units, c in mm).",
 )
-@click.option(
+@input_option(
     "--image-points",
     "pts_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV photo,name,x,y: photo coordinates in mm reduced to the principal point.",
+    "CSV photo,name,x,y: photo coordinates in mm reduced to the principal point.",
 )
 @sigma_image_option()
 @alpha_option

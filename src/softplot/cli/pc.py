@@ -12,6 +12,7 @@ from softplot.cli._orient import (
     ang_out,
     angles_option,
     finite_or_none,
+    input_option,
     json_option,
     read_table,
     report,
@@ -36,12 +37,10 @@ def command() -> None:
 
 
 @command.command("two-planes")
-@click.option(
+@input_option(
     "--readings",
     "path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,X1,Y1,X2,Y2[,x,y][,Z1,Z2]: readings in the planes Z1 and Z2 "
+    "CSV name,X1,Y1,X2,Y2[,x,y][,Z1,Z2]: readings in the planes Z1 and Z2 "
     "(instrument mm) and the photo coordinates x,y of the points (for f).",
 )
 @click.option("--z1", type=float, default=None, help="Height of the first (lower) plane.")
@@ -153,12 +152,10 @@ def two_planes_cmd(path, z1, z2, method, f_weights, sigma, json_path) -> None:
 
 
 @command.command("resect")
-@click.option(
+@input_option(
     "--marks",
     "path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,x,y,X,Y: photo coordinates of the marks (mm) and their readings "
+    "CSV name,x,y,X,Y: photo coordinates of the marks (mm) and their readings "
     "(instrument mm) in the plane --z.",
 )
 @click.option("--z", "z", type=float, required=True, help="Height of the reading plane.")
@@ -252,27 +249,13 @@ def _load_pc(path: Path, what: str):
 
 
 @command.command("differential")
-@click.option(
-    "--two-planes",
-    "a_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="JSON of 'pc two-planes' at the reference epoch (a).",
-)
-@click.option(
+@input_option("--two-planes", "a_path", "JSON of 'pc two-planes' at the reference epoch (a).")
+@input_option(
     "--reference",
     "b_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="JSON of 'pc resect' on the marks at the same epoch, lower plane (b).",
+    "JSON of 'pc resect' on the marks at the same epoch, lower plane (b).",
 )
-@click.option(
-    "--model",
-    "c_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="JSON of 'pc resect' on the marks in the oriented model (c).",
-)
+@input_option("--model", "c_path", "JSON of 'pc resect' on the marks in the oriented model (c).")
 @json_option
 def differential_cmd(a_path, b_path, c_path, json_path) -> None:
     """Birardi's differential procedure: PC = PC_a + (PC_c - PC_b).

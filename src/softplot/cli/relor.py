@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 
@@ -12,6 +10,7 @@ from softplot.cli._orient import (
     ang_out,
     angles_option,
     camera_options,
+    input_option,
     json_option,
     read_table,
     report,
@@ -25,20 +24,12 @@ from softplot.orientation.relative import relative_orientation
 
 @click.command("relor")
 @camera_options
-@click.option(
+@input_option(
     "--left",
     "left_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,x,y: left photo coordinates, mm, reduced to the principal point.",
+    "CSV name,x,y: left photo coordinates, mm, reduced to the principal point.",
 )
-@click.option(
-    "--right",
-    "right_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,x,y: right photo coordinates, mm.",
-)
+@input_option("--right", "right_path", "CSV name,x,y: right photo coordinates, mm.")
 @click.option(
     "--bx",
     type=float,

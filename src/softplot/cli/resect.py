@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 import numpy as np
 
@@ -12,6 +10,7 @@ from softplot.cli._orient import (
     ang_out,
     angles_option,
     camera_options,
+    input_option,
     json_option,
     read_table,
     report,
@@ -26,19 +25,15 @@ from softplot.orientation.resection import EO_NAMES, resect
 
 @click.command("resect")
 @camera_options
-@click.option(
+@input_option(
     "--image-points",
     "pts_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,x,y: photo coordinates in mm, reduced to the principal point.",
+    "CSV name,x,y: photo coordinates in mm, reduced to the principal point.",
 )
-@click.option(
+@input_option(
     "--control",
     "gcp_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates; with sX.. the point is weighted "
+    "CSV name,X,Y,Z[,sX,sY,sZ]: object coordinates; with sX.. the point is weighted "
     "control, without it is fixed.",
 )
 @sigma_image_option("Standard error of the photo coordinates, mm (the a priori sigma0).")
