@@ -240,18 +240,43 @@ def test_render_crb_matches_flat_bound():
 
 def test_half_arm_check_removes_scene_pull(monkeypatch):
     """On a busy 2400 dpi render, a few crosses have one half-arm on a scene edge or a
-    saturated road; LSM's half-arm consistency test drops that half and refits. Their pull
-    dominated the RMS: with the test the RMS is well below the RMS without it."""
+    saturated road; LSM's half-arm consistency test drops that half and refits. It sees the
+    pull where the cross's affine is held (a free affine turns the bar and hides it), i.e.
+    in the refits of :func:`softplot.marks.detect._shape_from_neighbours`: with the test the
+    RMS is well below the RMS without it."""
     import functools
 
     import softplot.marks.measure as measure_mod
     from softplot.marks.lsm import lsm
 
-    label, cam, kw, seed = next(c for c in CASES if "dpi=2400-noise_sigma=0.005-polarity=positive"
-                                "-scene=busy" in c[0])
+    label, cam, kw, seed = next(c for c in CASES if "blur_sigma_px=1.0-dpi=2400-noise_sigma=0.01"
+                                "-polarity=negative-scene=busy" in c[0])
     img, truth = render(cam, seed, **kw)
     rms = {}
     for arm in (True, False):
         monkeypatch.setattr(measure_mod, "lsm", functools.partial(lsm, arm_check=arm))
         rms[arm] = evaluate(detect(scan_of(img, truth), cam), truth, cam)["rms"]
-    assert rms[True] < 0.7 * rms[False], rms
+    assert rms[True] < 0.85 * rms[False], rms
+
+
+def test_shape_from_neighbours_removes_scene_pull(monkeypatch):
+    """On a busy 2400 dpi render, scene edges along some half-arms pull those halves and the
+    free affine absorbs the pull by turning the bar. Marks whose affine departs from the one
+    their neighbours' positions predict (beyond 3 robust spreads) are refitted with the
+    predicted affine held, where the half-arm test sees the pull and drops that half: the
+    RMS is well below that of the same detection without this test."""
+    import functools
+    import importlib
+
+    det_mod = importlib.import_module("softplot.marks.detect")
+    label, cam, kw, seed = next(c for c in CASES if "blur_sigma_px=1.0-dpi=2400-noise_sigma=0.01"
+                                "-polarity=negative-scene=busy" in c[0])
+    img, truth = render(cam, seed, **kw)
+    orig = det_mod._shape_from_neighbours
+    rms = {}
+    for z in (3.0, np.inf):
+        monkeypatch.setattr(det_mod, "_shape_from_neighbours", functools.partial(orig, z_max=z))
+        res = evaluate(detect(scan_of(img, truth), cam), truth, cam)
+        assert not res["wrong"] and not res["claimed"]
+        rms[z] = res["rms"]
+    assert rms[3.0] < 0.7 * rms[np.inf], rms

@@ -354,7 +354,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
                    max_shift=radius_ov * f + 1.0)
     _shape_from_neighbours(sc, shape, film[idx], c0[idx], pred[idx], fine, s0, init_err, sign,
-                           rules, radius_ov * f + 1.0)
+                           rules, radius_ov * f + 1.0, ppm)
     timings["lsm"] = time.perf_counter() - t0
 
     xy = np.full((N, 2), np.nan)
@@ -381,7 +381,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     A_fit = A0.copy()
     A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
     if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
-               init_err, sign, rules, radius_ov * f + 1.0):
+               init_err, sign, rules, radius_ov * f + 1.0, ppm):
         sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
         Hm, residual, rms = _reject_outliers(film, xy, status, reason, Hm, sigma,
                                              floor_px=floor_px)
@@ -426,50 +426,82 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     )
 
 
-def _neighbour_affine(film, A, ok, k=12):
-    """Each mark's pixel -> mark-frame affine predicted from its accepted neighbours.
+def _position_affine(film, xy, ok, ppm, k=24):
+    """Each mark's pixel -> mark-frame affine predicted from its neighbours' positions.
 
-    A local plane in film mm (:func:`_local_fit`) through the affines of the ``k`` nearest
-    accepted marks, the mark itself left out, in two passes (the second lowers neighbours far
-    from their own prediction): the affine follows the film's deformation, which varies
-    smoothly. ``film`` (M, 2) mm, ``A`` (M, 2, 2), ``ok`` (M,). Returns (M, 2, 2), NaN where
-    fewer than 7 marks are accepted. (A local quadratic follows a strong deformation no better
-    and is noisier.)
+    The affine of a mark is the local Jacobian of the film mm -> pixel mapping (film
+    deformation and scanner) in the mark frame (u along film x, v along film -y, nominal px,
+    as ``A0``): here the derivative of a local cubic (:func:`_local_fit`) through the
+    measured pixel positions ``xy`` (M, 2) of the ``k`` nearest accepted marks (``ok`` (M,)),
+    the mark itself left out. The positions are the most precise thing the detector measures
+    (a Rollei's neighbours are 5 mm apart, the arms 0.8 mm long): a cubic follows a 100 um
+    deformation to about 5e-5, where a plane through even the exact affines of the
+    neighbours misses it by about 4e-4
+    (``tests/test_marks_units.py::test_affine_from_neighbour_positions_follows_a_strong_deformation``).
+
+    Returns
+    -------
+    A : (M, 2, 2)
+        Predicted affines (NaN where fewer than 4 marks are accepted).
+    lev : (M,)
+        Variance factor of each prediction's Jacobian for unit position noise (px^2 / mm^2):
+        large where the neighbours lie to one side (corners, edges).
     """
-    good = np.where(ok & np.isfinite(A).all((1, 2)))[0]
-    if good.size < 7:
-        return np.full((len(film), 2, 2), np.nan)
-    val = A[good].reshape(-1, 4)
-    first = _local_fit(film[good], film[good], val, k, degree=1)
-    dev = np.linalg.norm(val - first, axis=1)
-    return _local_fit(film, film[good], val, k, degree=1, n_dev=dev).reshape(-1, 2, 2)
+    good = np.where(ok & np.isfinite(xy).all(1))[0]
+    M = len(film)
+    if good.size < 4:
+        return np.full((M, 2, 2), np.nan), np.full(M, np.nan)
+    _, grad, lev = _local_fit(film, film[good], xy[good], k, degree=3, gradient=True)
+    with np.errstate(all="ignore"):
+        A = np.linalg.inv(grad @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    return A, lev
 
 
 def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
-                           max_shift, tol=0.02):
+                           max_shift, ppm, z_max=3.0):
     """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
 
     A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
-    smoothly over the film, so its neighbours know it well. A mark not accepted, or whose
-    fitted affine departs from its neighbours' median by more than ``tol`` (relative), was
-    fitted against scene content; it is fitted again with the neighbours' affine held fixed
-    (4 parameters fewer for the scene to pull) and the result replaces the first when
-    accepted. Modifies ``fine`` in place.
+    smoothly over the film, so its neighbours' positions predict it
+    (:func:`_position_affine`). A scene edge along one half-arm pulls that half, and a free
+    affine absorbs the pull by turning that bar, which hides it from LSM's half-arm test.
+    So each element of the fitted affine is compared with the prediction: where one departs
+    from it by more than ``z_max`` times the robust spread of that element's departures over
+    all accepted marks (scaled by the prediction's own variance factor, larger at the grid's
+    outline), or where the mark was not accepted, the mark is fitted again with the predicted
+    affine held (the half-arm test then sees a pulled half and drops it); the refit replaces
+    the first when accepted. The spread adapts to the scan: where the prediction is the
+    weaker of the two (a 100 um deformation at 2400 dpi, low noise) only the marks the scene
+    really pulled stand out. Modifies ``fine`` in place.
     """
-    cons = _neighbour_affine(film, fine.A, fine.ok)
+    cons, lev = _position_affine(film, fine.xy, fine.ok, ppm)
     have = np.isfinite(cons).all((1, 2))
-    dev = np.full(len(film), np.inf)
     fin = have & np.isfinite(fine.A).all((1, 2))
-    if fin.any():
-        dev[fin] = (np.linalg.norm((fine.A[fin] - cons[fin]).reshape(-1, 4), axis=1)
-                    / np.linalg.norm(cons[fin].reshape(-1, 4), axis=1))
-    redo = np.where(have & (~fine.ok | (dev > tol)))[0]
-
+    ref = fin & fine.ok
+    z = np.full(len(film), np.inf)
+    if ref.sum() >= 4:
+        dth = np.full((len(film), 4), np.nan)
+        dth[fin] = (fine.A[fin] - cons[fin]).reshape(-1, 4)
+        med = np.median(dth[ref], axis=0)
+        spread = 1.4826 * np.median(np.abs(dth[ref] - med), axis=0) + 1e-9
+        scale = spread * np.sqrt(lev / np.median(lev[ref]))[:, None]
+        z[fin] = np.max(np.abs(dth[fin] - med) / scale[fin], axis=1)
+    redo = np.where(have & (~fine.ok | (z > z_max)))[0]
     if redo.size == 0:
         return
     start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
                  max_shift=max_shift, fit_shape=False)
+    # of two accepted fits of one mark, keep the one that agrees better with its neighbours
+    # (leave-one-out local prediction of the residuals against a projective model)
+    both = fine.ok[redo] & f2.ok
+    if both.any() and fine.ok.sum() >= 8:
+        m = fine.ok
+        Hm = grid.projective_fit(film[m], fine.xy[m])
+        near = _local_fit(film[redo], film[m], fine.xy[m] - grid.apply_h(Hm, film[m]), 16, 2)
+        at = grid.apply_h(Hm, film[redo]) + near
+        worse = np.hypot(*(f2.xy - at).T) > np.hypot(*(fine.xy[redo] - at).T)
+        f2.ok[both & worse] = False
     for j, i in enumerate(redo):
         if f2.ok[j]:
             fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], cons[i]
@@ -489,16 +521,21 @@ def _transform_json(Hm, rms, n) -> dict:
     }
 
 
-def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None):
+def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None,
+               gradient=False):
     """Values at query points from a weighted local polynomial through their neighbours.
 
     For each query point (``q_film`` (Q, 2) mm) a polynomial in film mm (plane for
-    ``degree=1``; quadratic for ``degree=2`` when at least 9 neighbours) is fitted to the values
-    ``n_val`` (M, C) of its ``k`` nearest neighbours ``n_film`` (M, 2), the query point itself
-    left out, with weights ``1/(1 + d^2)`` (``d`` in units of the median neighbour spacing),
-    lowered for imprecise neighbours (``n_sigma`` (M,), against the typical one) and for
-    neighbours far from their own prediction (``n_dev`` (M,), against 3x its robust spread).
-    Returns (Q, C).
+    ``degree=1``; quadratic for ``degree=2`` when at least 9 neighbours; cubic for
+    ``degree=3`` when at least 16, else quadratic) is fitted to the values ``n_val`` (M, C)
+    of its ``k`` nearest neighbours ``n_film`` (M, 2), the query point itself left out, with
+    weights ``1/(1 + d^2)`` (``d`` in units of the median neighbour spacing), lowered for
+    imprecise neighbours (``n_sigma`` (M,), against the typical one) and for neighbours far
+    from their own prediction (``n_dev`` (M,), against 3x its robust spread).
+
+    Returns (Q, C); with ``gradient`` also the polynomial's gradient at each query point
+    (Q, C, 2) (value units per mm) and the variance factor of that gradient (Q,) (its two
+    components' variances summed, for unit noise on the values; per mm^2).
     """
     n_val = np.asarray(n_val, float).reshape(len(n_film), -1)
     k = min(k_max, len(n_film) - 1)
@@ -510,9 +547,12 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
     j = j[keep].reshape(-1, k)
     unit = float(np.median(d[:, 0])) or 1.0
     dx = (n_film[j] - np.asarray(q_film)[:, None, :]) / unit  # (Q, k, 2)
-    cols = [np.ones(d.shape), dx[..., 0], dx[..., 1]]
+    X, Y = dx[..., 0], dx[..., 1]
+    cols = [np.ones(d.shape), X, Y]
     if degree >= 2 and k >= 9:
-        cols += [dx[..., 0] ** 2, dx[..., 0] * dx[..., 1], dx[..., 1] ** 2]
+        cols += [X**2, X * Y, Y**2]
+    if degree >= 3 and k >= 16:
+        cols += [X**3, X**2 * Y, X * Y**2, Y**3]
     D = np.stack(cols, -1)  # (Q, k, p)
     w = 1.0 / (1.0 + (d / unit) ** 2)
     if n_sigma is not None:
@@ -522,8 +562,15 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
         spread = 1.4826 * float(np.median(n_dev)) + 1e-12
         w = w / (1.0 + (n_dev[j] / (3.0 * spread)) ** 2)
     Dw = D * w[..., None]
-    N = np.matmul(Dw.transpose(0, 2, 1), D) + 1e-9 * np.eye(D.shape[-1])
-    return np.linalg.solve(N, np.matmul(Dw.transpose(0, 2, 1), n_val[j]))[:, 0, :]
+    DwT = Dw.transpose(0, 2, 1)
+    N = np.matmul(DwT, D) + 1e-9 * np.eye(D.shape[-1])
+    coef = np.linalg.solve(N, np.matmul(DwT, n_val[j]))  # (Q, p, C)
+    if not gradient:
+        return coef[:, 0, :]
+    Ni = np.linalg.inv(N)
+    var = Ni @ np.matmul(DwT, Dw) @ Ni  # coefficient covariance for unit noise
+    grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
+    return coef[:, 0, :], grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
 
 
 def _local_prediction(film, r, k_max=16, sigma=None):
@@ -556,15 +603,18 @@ def _outline(film):
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift):
+            sign, rules, max_shift, ppm):
     """Measure rejected crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
     half-arm. Each rejected cross is fitted four times, each time without one half-arm, from
-    the position its neighbours predict; a fit that passes the acceptance tests and lies within
-    the outlier test's own threshold of that prediction is a measurement of the cross by its
-    clean parts (of several such, the best-correlated). Modifies the arrays in place; returns
-    whether any cross was recovered.
+    the position its neighbours predict and with the affine their positions predict held
+    (:func:`_position_affine`; from ``A`` (M, 2, 2), free, where the neighbours do not
+    surround the cross): a free affine would let the remaining half of that bar set its
+    direction alone, and the cross's precision would drop several times. A fit that passes
+    the acceptance tests and lies within the outlier test's own threshold of that prediction
+    is a measurement of the cross by its clean parts (of several such, the best-correlated).
+    Modifies the arrays in place; returns whether any cross was recovered.
     """
     st = np.array(status)
     rej = np.where(st == "rejected")[0]
@@ -581,19 +631,29 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
     s_out = float(spread[edge[meas]][0]) if edge[meas].any() else s_in
     sp_rej = np.where(edge[rej], s_out, s_in)
     target = grid.apply_h(Hm, film[rej]) + pred[meas.size :]
+    held, lev = _position_affine(film, xy, st == "measured", ppm)
+    # held where the neighbours surround the cross; at the grid's corners the prediction is
+    # an extrapolation (variance factor tens of times the typical one): free there
+    hold = np.isfinite(held[rej]).all((1, 2)) & (lev[rej] <= 4.0 * np.nanmedian(lev[meas]))
     best = np.full(rej.size, -np.inf)
-    for k in range(4):
-        f2 = measure(sc, shape, target, A[rej], s0, init_err, sign, rules, anchor=target,
-                     max_shift=max_shift, drop_part=k)
-        sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
-        thr = np.maximum(np.maximum(3.0 * sp_rej, floor_px), np.minimum(4.5 * sp_rej, 4.0 * sg))
-        d = np.hypot(*(f2.xy - target).T)
-        good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best)
-        for j in np.where(good)[0]:
-            i = rej[j]
-            best[j] = f2.score[j]
-            xy[i], cov[i] = f2.xy[j], f2.cov[j]
-            status[i], reason[i] = "measured", ""
+    for grp, fit_shape in ((np.where(hold)[0], False), (np.where(~hold)[0], True)):
+        if grp.size == 0:
+            continue
+        Ag = A[rej[grp]] if fit_shape else held[rej[grp]]
+        for k in range(4):
+            f2 = measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
+                         anchor=target[grp], max_shift=max_shift, drop_part=k,
+                         fit_shape=fit_shape)
+            sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
+            sp = sp_rej[grp]
+            thr = np.maximum(np.maximum(3.0 * sp, floor_px), np.minimum(4.5 * sp, 4.0 * sg))
+            d = np.hypot(*(f2.xy - target[grp]).T)
+            good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
+            for j in np.where(good)[0]:
+                i = rej[grp[j]]
+                best[grp[j]] = f2.score[j]
+                xy[i], cov[i] = f2.xy[j], f2.cov[j]
+                status[i], reason[i] = "measured", ""
     return bool(np.isfinite(best).any())
 
 
