@@ -458,7 +458,7 @@ def _position_affine(film, xy, ok, ppm, k=24):
 
 
 def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
-                           max_shift, ppm, z_max=3.0):
+                           max_shift, ppm, z_max=2.5):
     """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
 
     A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
