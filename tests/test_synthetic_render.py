@@ -273,6 +273,36 @@ def test_mark_hides_the_optically_blurred_scene():
     assert np.abs(out[0] - out[1]).max() < 1e-4
 
 
+def test_exact_occlusion_hides_the_scene_under_a_mark():
+    """With ``occlusion="exact"`` the film under an opaque mark shows the mark, not the scene:
+    a scene change wholly inside the central cross's bar leaves the image as it is (to the
+    aliasing of the marks' area coverage), where the first-order occlusion lets it through
+    ``blur(S)``; on a flat scene both occlusions give the same image; the truth records it."""
+    def hidden(x, y):  # a bright stripe 0.02 mm wide along the axis of the 0.04 mm bar
+        return np.where(np.abs(x) < 0.01, 0.4, 0.0) + 0.3
+
+    def flat(x, y):
+        return np.full(np.shape(x), 0.3)
+
+    base = dict(dpi=2400, blur_sigma_px=1.0, noise_sigma=0.0, deform_um=0.0, bits=32,
+                crop_mm=(26.0, 26.0, 26.0, 26.0))
+    img = {}
+    for occ in ("first-order", "exact"):
+        for name, scene in (("hidden", hidden), ("flat", flat)):
+            img[occ, name], truth = render_scan(
+                "rollei-6006", ScanSpec(scene=scene, occlusion=occ, **base), seed=1)
+            assert truth["render"]["occlusion"] == occ
+    m = next(k for k in truth["marks"] if k["name"] == "R5C5")
+    x, y = int(round(m["x"])), int(round(m["y"]))
+    win = (slice(y + 10, y + 30), slice(x - 6, x + 7))  # across the lower half of the bar
+    exact = np.abs(img["exact", "hidden"][win] - img["exact", "flat"][win]).max()
+    first = np.abs(img["first-order", "hidden"][win] - img["first-order", "flat"][win]).max()
+    assert exact < 2e-3 and first > 0.01 and first > 10 * exact, (exact, first)
+    assert np.abs(img["exact", "flat"] - img["first-order", "flat"]).max() < 1e-5
+    with pytest.raises(SoftplotError, match="occlusion"):
+        ScanSpec(occlusion="partial").validate()
+
+
 @pytest.mark.parametrize(
     "kw,word",
     [

@@ -56,10 +56,14 @@ def _opt(name: str, kind: type, default, help_: str, metavar: str | None = None)
 @click.option("--format", "file_format", default="tif", show_default=True,
               metavar="tif|jpg|png", help="Image file format.")
 @click.option("--compress", is_flag=True, help="Compress TIFF files (zlib).")
+@click.option("--occlusion", default="first-order", show_default=True,
+              type=click.Choice(["first-order", "exact"]),
+              help="How opaque marks hide the scene (exact: the scene under a mark never "
+                   "reaches the image; see softplot.synthetic.ScanSpec).")
 @click.option("--overwrite", is_flag=True, help="Replace existing files.")
 def command(outdir, camera, count, seed, dpi, negative, blur, noise, grain, contrast, scene,
             deform, shrink, rotate, offset_x, offset_y, anisotropy, dust, scratches, cover, crop,
-            bits, rgb, file_format, compress, overwrite) -> None:
+            bits, rgb, file_format, compress, occlusion, overwrite) -> None:
     """Render synthetic scans of CAMERA's film frame into OUTDIR, each with <stem>.truth.json.
 
     The truth holds every mark's exact pixel position and state and the complete
@@ -83,7 +87,7 @@ def command(outdir, camera, count, seed, dpi, negative, blur, noise, grain, cont
         offset_px=(offset_x, offset_y), anisotropy_ppm=anisotropy, dust=dust,
         scratches=scratches, cover=cover, crop_mm=crop, bits=bits, rgb=rgb,
         file_format=file_format.lower().lstrip(".").replace("tiff", "tif").replace("jpeg", "jpg"),
-        tiff_compression="zlib" if compress else None,
+        tiff_compression="zlib" if compress else None, occlusion=occlusion,
     ).validate()
     seeds = list(range(seed, seed + count))
     if not overwrite:

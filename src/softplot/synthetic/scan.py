@@ -33,7 +33,13 @@ import numpy as np
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.synthetic.mapping import Deformation, Scanner, TruthMapping
-from softplot.synthetic.marks import MarkShape, cross_shape, fiducial_shape, render_marks
+from softplot.synthetic.marks import (
+    MarkShape,
+    area_coverage,
+    cross_shape,
+    fiducial_shape,
+    render_marks,
+)
 from softplot.synthetic.scene import SCENES, Scene
 
 #: transmittance (R, G, B) of the orange mask of a colour negative film base
@@ -42,6 +48,7 @@ ORANGE_MASK = (0.85, 0.55, 0.30)
 LUMA = (0.299, 0.587, 0.114)
 POLARITIES = ("positive", "negative")
 FILE_FORMATS = ("tif", "jpg", "png")
+OCCLUSIONS = ("first-order", "exact")
 
 _BLOCK = 64  # rows per independently seeded block of random numbers
 _GRID = 32  # px between exact film-coordinate nodes for the scene maps
@@ -106,6 +113,12 @@ class ScanSpec:
         TIFF compression ("zlib", "lzw", ...); None writes uncompressed (memory-mappable).
     subrows : int
         Sub-rows per pixel in the mark integration (>= 8).
+    occlusion : str
+        How an opaque mark hides the scene (blurs of 0.4 px and more): "first-order" (the
+        default) images it as ``blur(S) + (m - blur(S)) x blur(M)`` (``S`` the scene, ``M``
+        the mark's coverage, ``m`` its level), exact where the scene is linear over the blur;
+        "exact" as the film is: ``blur(S x (1 - M)) + m x blur(M)``, so that the scene hidden
+        under a mark never reaches the image (they differ at sharp scene edges by the marks).
     """
 
     dpi: float = 1200.0
@@ -132,6 +145,7 @@ class ScanSpec:
     jpeg_quality: int = 92
     tiff_compression: str | None = None
     subrows: int = 16
+    occlusion: str = "first-order"
 
     def validate(self) -> "ScanSpec":
         """Check every field; raise :class:`SoftplotError` naming the first bad one."""
@@ -193,6 +207,8 @@ class ScanSpec:
             raise bad("subrows", "must be an integer in 8..256")
         if not (isinstance(self.jpeg_quality, (int, np.integer)) and 1 <= self.jpeg_quality <= 100):
             raise bad("jpeg_quality", "must be an integer in 1..100")
+        if self.occlusion not in OCCLUSIONS:
+            raise bad("occlusion", f"must be one of {', '.join(OCCLUSIONS)}")
         return self
 
     def crop_px(self, px_per_mm: float) -> tuple[int, int, int, int]:
@@ -401,6 +417,7 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
         groups.setdefault(_shape_key(shp), []).append(i)
     curved = deformation.amp.size > 0
     parts = []
+    hidden = []
     post_blur = False
     for members in groups.values():
         members = np.array(members)
@@ -409,6 +426,12 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
             spec.subrows, curvature=curved,
         )
         parts.append((members[idx], col, row, val))
+        if post_blur and marks and spec.occlusion == "exact":
+            # the area each opaque mark hides on the film, exact coverage of every pixel: the
+            # scene there never reaches the scanner's optics
+            a_idx, a_col, a_row, a_cov = area_coverage(
+                mapping, mk.film[members], mk.shapes[members[0]], spec.subrows)
+            hidden.append((a_col, a_row, a_cov))
     if parts:
         m_idx, m_col, m_row, m_val = (np.concatenate(a) for a in zip(*parts, strict=True))
     else:
@@ -487,7 +510,9 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
 
     image = _compose(spec, seed, mapping, scene, (width, height), (fw, fh), s, mark_level,
                      mask, (m_idx, m_col, m_row, m_val if marks else m_val * 0), post_blur,
-                     patches, clip or spec.bits != 32)
+                     patches, clip or spec.bits != 32,
+                     hide=tuple(np.concatenate(a) for a in zip(*hidden, strict=True))
+                     if hidden else None)
 
     # -- truth ----------------------------------------------------------------------------
     local = _local_contrast(scene, mk, spec.contrast) * luma
@@ -557,6 +582,7 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
             "line_width_px": float(lw_mm * scale_px),
             "arm_half_length_px": float(arm_mm / 2 * scale_px),
             "subrows": int(spec.subrows),
+            "occlusion": spec.occlusion if post_blur else "exact",
             "orange_mask": [float(v) for v in mask] if channels == 3 else None,
         },
         "spec": spec.to_dict(),
@@ -681,7 +707,7 @@ def _rows_film(cu: np.ndarray, cv: np.ndarray, r0: int, r1: int):
 
 
 def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse,
-             post_blur, patches, clip=True):
+             post_blur, patches, clip=True, hide=None):
     width, height = size
     fw, fh = format_mm
     channels = 3 if spec.rgb else 1
@@ -709,6 +735,12 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     order = np.argsort(m_row[keep], kind="stable")
     m_col, m_row = m_col[keep][order], m_row[keep][order]
     m_val = m_val[keep][order].astype(np.float32)
+    if hide is not None:
+        h_col, h_row, h_cov = hide
+        keep = (h_col >= 0) & (h_col < width) & (h_row >= 0) & (h_row < height)
+        order = np.argsort(h_row[keep], kind="stable")
+        h_col, h_row = h_col[keep][order], h_row[keep][order]
+        h_cov = h_cov[keep][order].astype(np.float32)
     sign = np.float32(-1.0 if spec.polarity == "negative" else 1.0)
     grain = _BlockNormals(seed, "grain", width, channels) if spec.grain_sigma > 0 else None
     noise = _BlockNormals(seed, "noise", width, channels) if spec.noise_sigma > 0 else None
@@ -751,6 +783,24 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
                     seen = seen[:, :, None]
             mark_amp = level - seen[rr, cc]
             trans = np.ones((a1 - a0, width, 1), np.float32)
+            corr = None
+            if hide is not None and sig > 0:
+                # exact physics: the film under an opaque mark shows the mark, not the scene,
+                # before the optics blur it: image = blur(scene x (1 - C)) + mark x blur(C)
+                # with C the mark's coverage. The mark's term is the analytic blurred mark
+                # (exact sampling); the scene's term is the blur of the scene with the marks'
+                # pixels cut out by their exact area coverage, plus blur(scene) x (blur(C) -
+                # blurred mark), which is 0 for a flat scene (aliasing of the coverage).
+                q0, q1 = np.searchsorted(h_row, [a0, a1])
+                if q1 > q0:
+                    C = np.zeros((a1 - a0, width), np.float32)
+                    np.add.at(C, (h_row[q0:q1] - a0, h_col[q0:q1]), h_cov[q0:q1])
+                    np.minimum(C, 1.0, out=C)
+                    k = 2 * rad + 1
+                    Cb = cv2.GaussianBlur(C, (k, k), sig, sigmaY=sig,
+                                          borderType=cv2.BORDER_REFLECT_101)[:, :, None]
+                    corr = seen * Cb
+                    val = val * (1.0 - C[:, :, None])
         else:
             lo, hi = np.searchsorted(m_row, [a0, a1])
             if hi > lo:
@@ -785,6 +835,8 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
         if post_blur and hi > lo:
             amp = sign * mask32 * mark_amp * trans[rr, cc]
             core[rr - (r0 - a0), cc] += amp * mv
+            if corr is not None:
+                core += (sign * mask32 * corr * trans)[r0 - a0 : r1 - a0]
         if noise is not None:
             core = core + np.float32(spec.noise_sigma) * noise.rows(r0, r1)
         if clip:
