@@ -497,16 +497,17 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
     start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
                  max_shift=max_shift, fit_shape=False)
-    # of two accepted fits of one mark, keep the one that agrees better with its neighbours
-    # (leave-one-out local prediction of the residuals against a projective model)
+    # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
+    # the outlier test's leave-one-out prediction of its residual against a projective model
     both = fine.ok[redo] & f2.ok
     if both.any() and fine.ok.sum() >= 8:
-        m = fine.ok
+        m = np.where(fine.ok)[0]
         Hm = grid.projective_fit(film[m], fine.xy[m])
-        near = _local_fit(film[redo], film[m], fine.xy[m] - grid.apply_h(Hm, film[m]), 16, 2)
-        at = grid.apply_h(Hm, film[redo]) + near
-        worse = np.hypot(*(f2.xy - at).T) > np.hypot(*(fine.xy[redo] - at).T)
-        f2.ok[both & worse] = False
+        near = _local_prediction(film[m], fine.xy[m] - grid.apply_h(Hm, film[m]))
+        k = redo[both]
+        at = grid.apply_h(Hm, film[k]) + near[np.searchsorted(m, k)]
+        worse = np.hypot(*(f2.xy[both] - at).T) > np.hypot(*(fine.xy[k] - at).T)
+        f2.ok[np.where(both)[0][worse]] = False
     for j, i in enumerate(redo):
         if f2.ok[j]:
             fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], cons[i]
