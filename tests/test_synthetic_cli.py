@@ -64,6 +64,7 @@ def test_synth_refuses_to_overwrite(tmp_path, capsys):
         (["--camera", "rollei-6006", "--format", "gif"], "file_format"),
         (["--camera", "rollei-6006", "--format", "jpg", "--bits", "16"], "JPEG"),
         (["--camera", "rollei-6006", "--count", "0"], "--count"),
+        (["--camera", "rollei-6006", "--occlusion", "partial"], "occlusion"),
     ],
 )
 def test_synth_bad_options_exit_2_one_line(tmp_path, capsys, extra, word):
@@ -72,6 +73,20 @@ def test_synth_bad_options_exit_2_one_line(tmp_path, capsys, extra, word):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and word in lines[0]
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_synth_exact_occlusion(tmp_path, capsys):
+    """``--occlusion exact`` renders what ``ScanSpec(occlusion="exact")`` renders and says so
+    in the truth."""
+    code, out, err = run(["synth", str(tmp_path), "--camera", "pentax-645", "--dpi", "300",
+                          "--scene", "busy", "--occlusion", "exact"], capsys)
+    assert code == 0, err
+    truth = json.loads((tmp_path / "pentax-645-0000.truth.json").read_text())
+    assert truth["render"]["occlusion"] == "exact" and truth["spec"]["occlusion"] == "exact"
+    ref, _ = render_scan("pentax-645", ScanSpec(dpi=300, scene="busy", occlusion="exact"), 0)
+    first, _ = render_scan("pentax-645", ScanSpec(dpi=300, scene="busy"), 0)
+    data = np.asarray(load_scan(tmp_path / "pentax-645-0000.tif").data)
+    assert np.array_equal(data, ref) and not np.array_equal(data, first)
 
 
 def test_synth_with_a_certificate_file(tmp_path, capsys):

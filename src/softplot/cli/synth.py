@@ -57,7 +57,7 @@ def _opt(name: str, kind: type, default, help_: str, metavar: str | None = None)
               metavar="tif|jpg|png", help="Image file format.")
 @click.option("--compress", is_flag=True, help="Compress TIFF files (zlib).")
 @click.option("--occlusion", default="first-order", show_default=True,
-              type=click.Choice(["first-order", "exact"]),
+              metavar="first-order|exact",
               help="How opaque marks hide the scene (exact: the scene under a mark never "
                    "reaches the image; see softplot.synthetic.ScanSpec).")
 @click.option("--overwrite", is_flag=True, help="Replace existing files.")
