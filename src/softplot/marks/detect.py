@@ -457,8 +457,15 @@ def _position_affine(film, xy, ok, ppm, k=24):
     if good.size < 4:
         return np.full((M, 2, 2), np.nan), np.full(M, np.nan)
     _, grad, lev = _local_fit(film, film[good], xy[good], k, degree=3, gradient=True)
+    J = grad @ np.diag([1.0 / ppm, -1.0 / ppm])
+    # 2 x 2 inverses by hand: a degenerate neighbourhood (collinear marks: a Jacobian near
+    # singular, |det| ~ 1 otherwise) gives NaN, not an exception
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    adj = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1),
+                    np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
     with np.errstate(all="ignore"):
-        A = np.linalg.inv(grad @ np.diag([1.0 / ppm, -1.0 / ppm]))
+        A = adj / det[:, None, None]
+    A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < 1e-6)] = np.nan
     return A, lev
 
 
@@ -567,15 +574,35 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
     if n_dev is not None:
         spread = 1.4826 * float(np.median(n_dev)) + 1e-12
         w = w / (1.0 + (n_dev[j] / (3.0 * spread)) ** 2)
+    # per query the highest degree its neighbours determine (a partial grid of a few rows
+    # cannot carry a cubic in y): the terms of a degree whose normal equations are
+    # ill-conditioned are dropped for that query; a plane that is not determined (collinear
+    # neighbours) gives no gradient (NaN)
+    p = D.shape[-1]
+    N0 = np.matmul((D * w[..., None]).transpose(0, 2, 1), D)
+    level = np.zeros(len(d), int)  # terms used: 3 plane, 6 quadratic, 10 cubic (0: none)
+    prev = 0
+    for L in (3, 6, 10):
+        if L > p:
+            break
+        sub = N0[:, :L, :L]
+        dg = np.sqrt(np.maximum(np.einsum("qii->qi", sub), 1e-300))
+        lam = np.linalg.eigvalsh(sub / (dg[:, :, None] * dg[:, None, :]))[:, 0]
+        level = np.where((lam > 1e-6) & (level == prev), L, level)
+        prev = L
+    D = D * (np.arange(p)[None, None, :] < np.maximum(level, 3)[:, None, None])
     Dw = D * w[..., None]
     DwT = Dw.transpose(0, 2, 1)
-    N = np.matmul(DwT, D) + 1e-9 * np.eye(D.shape[-1])
+    N = np.matmul(DwT, D) + 1e-9 * np.eye(p)
+    idle = np.arange(p)[None, :] >= np.maximum(level, 3)[:, None]  # dropped terms: coef 0
+    N[:, np.arange(p), np.arange(p)] += idle
     coef = np.linalg.solve(N, np.matmul(DwT, n_val[j]))  # (Q, p, C)
     if not gradient:
         return coef[:, 0, :]
     Ni = np.linalg.inv(N)
     var = Ni @ np.matmul(DwT, Dw) @ Ni  # coefficient covariance for unit noise
     grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
+    grad[level < 3] = np.nan
     return coef[:, 0, :], grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
 
 
