@@ -706,6 +706,14 @@ def _rows_film(cu: np.ndarray, cv: np.ndarray, r0: int, r1: int):
     return u, v
 
 
+def _on_image_by_row(col, row, val, width, height):
+    """Sparse pixel entries (col, row, value) inside the image, sorted by row (stable);
+    values float32."""
+    keep = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    order = np.argsort(row[keep], kind="stable")
+    return col[keep][order], row[keep][order], val[keep][order].astype(np.float32)
+
+
 def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse,
              post_blur, patches, clip=True, hide=None):
     width, height = size
@@ -731,16 +739,9 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     else:
         cu, cv = _film_maps(mapping, width, height)
     m_idx, m_col, m_row, m_val = sparse
-    keep = (m_col >= 0) & (m_col < width) & (m_row >= 0) & (m_row < height)
-    order = np.argsort(m_row[keep], kind="stable")
-    m_col, m_row = m_col[keep][order], m_row[keep][order]
-    m_val = m_val[keep][order].astype(np.float32)
+    m_col, m_row, m_val = _on_image_by_row(m_col, m_row, m_val, width, height)
     if hide is not None:
-        h_col, h_row, h_cov = hide
-        keep = (h_col >= 0) & (h_col < width) & (h_row >= 0) & (h_row < height)
-        order = np.argsort(h_row[keep], kind="stable")
-        h_col, h_row = h_col[keep][order], h_row[keep][order]
-        h_cov = h_cov[keep][order].astype(np.float32)
+        h_col, h_row, h_cov = _on_image_by_row(*hide, width, height)
     sign = np.float32(-1.0 if spec.polarity == "negative" else 1.0)
     grain = _BlockNormals(seed, "grain", width, channels) if spec.grain_sigma > 0 else None
     noise = _BlockNormals(seed, "noise", width, channels) if spec.noise_sigma > 0 else None
