@@ -185,3 +185,50 @@ def test_affine_from_neighbour_positions_follows_a_strong_deformation(seed):
     A3, _ = _position_affine(film, xy, rows3, ppm)
     assert np.abs(A3[rows3] - truth[rows3]).max() < 5e-3
     assert np.isnan(_position_affine(film, xy, np.arange(len(film)) < 11, ppm)[0]).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_cross_model_matches_numpy(seed):
+    """The compiled LSM kernel (softplot.marks.kernels) gives the NumPy model, template,
+    derivatives and Jacobian to float32 rounding, for turned, sheared, scaled and strongly
+    blurred crosses with scene, tilt and saturated-background terms; so LSM's estimates do
+    not depend on which path ran."""
+    from softplot.marks import kernels
+    from softplot.marks.lsm import _assemble, _geom
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(seed)
+    shape = MarkShape("cross", length=rng.uniform(8, 60), width=rng.uniform(0.8, 6.0))
+    n, P = 7, 900
+    ext = 0.6 * shape.length + 4
+    X = rng.uniform(-ext, ext, (n, P)).astype(np.float32)
+    Y = rng.uniform(-ext, ext, (n, P)).astype(np.float32)
+    S = rng.uniform(0.2, 0.8, (n, P)).astype(np.float32)
+    Q = (rng.random((n, P)) < 0.2).astype(np.float32)
+    valid = np.ones((n, P), bool)
+    z = np.zeros((n, P), np.float32)
+    data = (X, Y, z, valid, S, z + 1, Q, z)
+    p = np.zeros((n, 12))
+    p[:, 0:2] = rng.uniform(-1.5, 1.5, (n, 2))
+    th = rng.uniform(-0.2, 0.2, n)
+    k = rng.uniform(0.9, 1.1, (n, 2))
+    sh = rng.uniform(-0.03, 0.03, n)
+    p[:, 2] = k[:, 0] * np.cos(th)
+    p[:, 3] = -k[:, 0] * np.sin(th) + sh
+    p[:, 4] = k[:, 1] * np.sin(th)
+    p[:, 5] = k[:, 1] * np.cos(th)
+    p[:, 6] = rng.uniform(0.3, 3.0, n)
+    p[:, 7:12] = rng.uniform(-0.3, 0.3, (n, 5))
+    geo = _geom(p, data, shape)
+    M, T, u, v, J = _assemble(p, data, geo)
+    Mk, Tk, Tuk, Tvk, uk, vk, Jk = kernels.cross_model(p, data, shape)
+    for a, b in ((M, Mk), (T, Tk), (geo[1], Tuk), (geo[2], Tvk)):  # float32 rounding
+        assert np.abs(a - b).max() < 1e-5 * max(1.0, float(np.abs(a).max()))
+    assert np.abs(u - uk).max() < 1e-4 and np.abs(v - vk).max() < 1e-4
+    scale = np.abs(J).max(axis=(0, 1)) + 1e-6
+    assert (np.abs(J - Jk).max(axis=(0, 1)) / scale).max() < 1e-4
+    # the test sees a difference: a shifted centre changes the kernel's model
+    p2 = p.copy()
+    p2[:, 0] += 0.01
+    assert np.abs(kernels.cross_model(p2, data, shape)[0] - Mk).max() > 1e-4

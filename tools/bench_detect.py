@@ -134,6 +134,12 @@ def child(path: str, camera: str, mode: str, warm: str) -> None:
     from softplot.runtime import tune_allocator
 
     tune_allocator()  # as the softplot command does
+    if mode != "fresh":
+        # the compiled LSM kernel (numba's JIT runtime and machine code, some 40 MiB, the same
+        # for any scan) is library code: loaded before the measurement, like the imports
+        from softplot.marks import kernels
+
+        kernels.load()
     leftover = 0
     if mode == "warm":
         anon0 = _status_kib("RssAnon")

@@ -580,16 +580,24 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
     # neighbours) gives no gradient (NaN)
     p = D.shape[-1]
     N0 = np.matmul((D * w[..., None]).transpose(0, 2, 1), D)
+    dg = np.sqrt(np.maximum(np.einsum("qii->qi", N0), 1e-300))
+    Nn = N0 / (dg[:, :, None] * dg[:, None, :])  # unit diagonal
+    # the leading blocks of Nn are the normalised lower-degree matrices, and no eigenvalue of
+    # a principal submatrix lies below the smallest of the whole (Cauchy interlacing): where
+    # the full degree is well conditioned every lower one is, and only the rest are tested
     level = np.zeros(len(d), int)  # terms used: 3 plane, 6 quadratic, 10 cubic (0: none)
-    prev = 0
+    full = np.linalg.eigvalsh(Nn)[:, 0] > 1e-6
+    level[full] = p
+    rest = np.where(~full)[0]
+    lev_r = np.zeros(rest.size, int)
+    below = 0
     for L in (3, 6, 10):
-        if L > p:
+        if L >= p or rest.size == 0:
             break
-        sub = N0[:, :L, :L]
-        dg = np.sqrt(np.maximum(np.einsum("qii->qi", sub), 1e-300))
-        lam = np.linalg.eigvalsh(sub / (dg[:, :, None] * dg[:, None, :]))[:, 0]
-        level = np.where((lam > 1e-6) & (level == prev), L, level)
-        prev = L
+        lam = np.linalg.eigvalsh(Nn[rest, :L, :L])[:, 0]
+        lev_r = np.where((lam > 1e-6) & (lev_r == below), L, lev_r)
+        below = L
+    level[rest] = lev_r
     D = D * (np.arange(p)[None, None, :] < np.maximum(level, 3)[:, None, None])
     Dw = D * w[..., None]
     DwT = Dw.transpose(0, 2, 1)
