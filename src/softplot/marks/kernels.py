@@ -26,7 +26,7 @@ import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model"]
+__all__ = ["AVAILABLE", "cross_model", "load"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -48,131 +48,135 @@ _ONE, _ZERO, _HALF = _f4(1.0), _f4(0.0), _f4(0.5)
 _TWELFTH = _f4(1.0 / 12.0)
 
 
-def _define():
-    njit = numba.njit
+def _no_jit(*args, **kwargs):  # without numba the kernel is defined but never called
+    return lambda f: f
 
-    @njit(inline="always", fastmath=True)
-    def phi_pd(z):
-        w = (min(max(z, -_ZSAT), _ZSAT) - _Z0) * _IH
-        k = int(w)
-        f = w - _f4(k)
-        p0 = _TP[k]
-        d0 = _TD[k]
-        return p0 + f * (_TP[k + 1] - p0), d0 + f * (_TD[k + 1] - d0)
 
-    @njit(inline="always", fastmath=True)
-    def box(t, h, inv):
-        # blurred box of half-width h (template.box_profile): value, d/dt, d/ds
-        zp = (t + h) * inv
-        zm = (t - h) * inv
-        if zp <= -_ZSAT or zm >= _ZSAT:
-            return _ZERO, _ZERO, _ZERO
-        if zp >= _ZSAT and zm <= -_ZSAT:
-            return _ONE, _ZERO, _ZERO
-        Pp, pp = phi_pd(zp)
-        Pm, pm = phi_pd(zm)
-        return Pp - Pm, (pp - pm) * inv, -(zp * pp - zm * pm) * inv
+# module-level functions (not closures), so that numba's on-disk cache finds them again in
+# the next process instead of compiling anew
+njit = numba.njit if AVAILABLE else _no_jit
 
-    @njit(inline="always", fastmath=True)
-    def pixel_box(t, h, hb, inv):
-        # the four Psi terms of template.box_pixel_profile: sum, d/dz sum, density sum
-        z0 = (t + h + hb) * inv
-        z3 = (t - h - hb) * inv
-        P = _ZERO
-        dt = _ZERO
-        ds = _ZERO
-        if z0 <= -_ZSAT or z3 >= _ZSAT:
-            return P, dt, ds
-        for k in range(4):
-            if k == 0:
-                z, sg = z0, _ONE
-            elif k == 1:
-                z, sg = (t + h - hb) * inv, -_ONE
-            elif k == 2:
-                z, sg = (t - h + hb) * inv, -_ONE
-            else:
-                z, sg = z3, _ONE
-            if z <= -_ZSAT:
-                continue
-            if z >= _ZSAT:  # Phi = 1, density 0: Psi(z) = z
-                P += sg * z
-                dt += sg
-                continue
-            P_, p_ = phi_pd(z)
-            P += sg * (z * P_ + p_)
-            dt += sg * P_
-            ds += sg * p_
+
+@njit(inline="always", fastmath=True)
+def _phi_pd(z):
+    w = (min(max(z, -_ZSAT), _ZSAT) - _Z0) * _IH
+    k = int(w)
+    f = w - _f4(k)
+    p0 = _TP[k]
+    d0 = _TD[k]
+    return p0 + f * (_TP[k + 1] - p0), d0 + f * (_TD[k + 1] - d0)
+
+
+@njit(inline="always", fastmath=True)
+def _box(t, h, inv):
+    # blurred box of half-width h (template.box_profile): value, d/dt, d/ds
+    zp = (t + h) * inv
+    zm = (t - h) * inv
+    if zp <= -_ZSAT or zm >= _ZSAT:
+        return _ZERO, _ZERO, _ZERO
+    if zp >= _ZSAT and zm <= -_ZSAT:
+        return _ONE, _ZERO, _ZERO
+    Pp, pp = _phi_pd(zp)
+    Pm, pm = _phi_pd(zm)
+    return Pp - Pm, (pp - pm) * inv, -(zp * pp - zm * pm) * inv
+
+
+@njit(inline="always", fastmath=True)
+def _pixel_box(t, h, hb, inv):
+    # the four Psi terms of template.box_pixel_profile: sum, d/dz sum, density sum
+    z0 = (t + h + hb) * inv
+    z3 = (t - h - hb) * inv
+    P = _ZERO
+    dt = _ZERO
+    ds = _ZERO
+    if z0 <= -_ZSAT or z3 >= _ZSAT:
         return P, dt, ds
-
-    @njit(fastmath=True, cache=True, nogil=True)
-    def kernel(X, Y, S, Qs, q, length, width, M, T, Tu, Tv, U, V, J):
-        n, npx = X.shape
-        hL = _HALF * length
-        hW = _HALF * width
-        for i in range(n):
-            cx, cy = _f4(q[i, 0]), _f4(q[i, 1])
-            a00, a01, a10, a11 = _f4(q[i, 2]), _f4(q[i, 3]), _f4(q[i, 4]), _f4(q[i, 5])
-            s, a, bb = _f4(q[i, 6]), _f4(q[i, 7]), _f4(q[i, 8])
-            gx, gy, sat = _f4(q[i, 9]), _f4(q[i, 10]), _f4(q[i, 11])
-            # pixel footprint in the mark frame (template.aperture)
-            bu, mu = max(abs(a00), abs(a01)), min(abs(a00), abs(a01))
-            bv, mv = max(abs(a10), abs(a11)), min(abs(a10), abs(a11))
-            s_len = np.sqrt(s * s + _TWELFTH)
-            invL = _ONE / s_len
-            dsl = s / s_len
-            Su = np.sqrt(s * s + mu * mu * _TWELFTH)
-            Sv = np.sqrt(s * s + mv * mv * _TWELFTH)
-            invu, invv = _ONE / Su, _ONE / Sv
-            hbu, hbv = _HALF * bu, _HALF * bv
-            ibu, ibv = _ONE / bu, _ONE / bv
-            for j in range(npx):
-                x = X[i, j]
-                y = Y[i, j]
-                dx = x - cx
-                dy = y - cy
-                u = a00 * dx + a01 * dy
-                v = a10 * dx + a11 * dy
-                Lu, Lu_t, Lu_s = box(u, hL, invL)
-                Lv, Lv_t, Lv_s = box(v, hL, invL)
-                Lu_s *= dsl
-                Lv_s *= dsl
-                pu, tu, su = pixel_box(u, hW, hbu, invu)
-                Wu, Wu_t, Wu_s = pu * Su * ibu, tu * ibu, su * ibu * s * invu
-                pv, tv, sv = pixel_box(v, hW, hbv, invv)
-                Wv, Wv_t, Wv_s = pv * Sv * ibv, tv * ibv, sv * ibv * s * invv
-                t_ = Lu * Wv + Wu * Lv - Wu * Wv
-                tu_ = Lu_t * Wv + Wu_t * Lv - Wu_t * Wv
-                tv_ = Lu * Wv_t + Wu * Lv_t - Wu * Wv_t
-                ts_ = Lu_s * Wv + Lu * Wv_s + Wu_s * Lv + Wu * Lv_s - Wu_s * Wv - Wu * Wv_s
-                qs = Qs[i, j]
-                bg = S[i, j] + gx * x + gy * y + sat * qs
-                b = bb - bg
-                M[i, j] = a + bg + b * t_
-                T[i, j] = t_
-                Tu[i, j] = tu_
-                Tv[i, j] = tv_
-                U[i, j] = u
-                V[i, j] = v
-                bu_ = b * tu_
-                bv_ = b * tv_
-                om = _ONE - t_
-                J[i, j, 0] = -(bu_ * a00 + bv_ * a10)
-                J[i, j, 1] = -(bu_ * a01 + bv_ * a11)
-                J[i, j, 2] = bu_ * dx
-                J[i, j, 3] = bu_ * dy
-                J[i, j, 4] = bv_ * dx
-                J[i, j, 5] = bv_ * dy
-                J[i, j, 6] = b * ts_
-                J[i, j, 7] = _ONE
-                J[i, j, 8] = t_
-                J[i, j, 9] = x * om
-                J[i, j, 10] = y * om
-                J[i, j, 11] = qs * om
-
-    return kernel
+    for k in range(4):
+        if k == 0:
+            z, sg = z0, _ONE
+        elif k == 1:
+            z, sg = (t + h - hb) * inv, -_ONE
+        elif k == 2:
+            z, sg = (t - h + hb) * inv, -_ONE
+        else:
+            z, sg = z3, _ONE
+        if z <= -_ZSAT:
+            continue
+        if z >= _ZSAT:  # Phi = 1, density 0: Psi(z) = z
+            P += sg * z
+            dt += sg
+            continue
+        P_, p_ = _phi_pd(z)
+        P += sg * (z * P_ + p_)
+        dt += sg * P_
+        ds += sg * p_
+    return P, dt, ds
 
 
-_KERNEL = None
+@njit(fastmath=True, cache=True, nogil=True)
+def _kernel(X, Y, S, Qs, q, length, width, M, T, Tu, Tv, U, V, J):
+    n, npx = X.shape
+    hL = _HALF * length
+    hW = _HALF * width
+    for i in range(n):
+        cx, cy = _f4(q[i, 0]), _f4(q[i, 1])
+        a00, a01, a10, a11 = _f4(q[i, 2]), _f4(q[i, 3]), _f4(q[i, 4]), _f4(q[i, 5])
+        s, a, bb = _f4(q[i, 6]), _f4(q[i, 7]), _f4(q[i, 8])
+        gx, gy, sat = _f4(q[i, 9]), _f4(q[i, 10]), _f4(q[i, 11])
+        # pixel footprint in the mark frame (template.aperture)
+        bu, mu = max(abs(a00), abs(a01)), min(abs(a00), abs(a01))
+        bv, mv = max(abs(a10), abs(a11)), min(abs(a10), abs(a11))
+        s_len = np.sqrt(s * s + _TWELFTH)
+        invL = _ONE / s_len
+        dsl = s / s_len
+        Su = np.sqrt(s * s + mu * mu * _TWELFTH)
+        Sv = np.sqrt(s * s + mv * mv * _TWELFTH)
+        invu, invv = _ONE / Su, _ONE / Sv
+        hbu, hbv = _HALF * bu, _HALF * bv
+        ibu, ibv = _ONE / bu, _ONE / bv
+        for j in range(npx):
+            x = X[i, j]
+            y = Y[i, j]
+            dx = x - cx
+            dy = y - cy
+            u = a00 * dx + a01 * dy
+            v = a10 * dx + a11 * dy
+            Lu, Lu_t, Lu_s = _box(u, hL, invL)
+            Lv, Lv_t, Lv_s = _box(v, hL, invL)
+            Lu_s *= dsl
+            Lv_s *= dsl
+            pu, tu, su = _pixel_box(u, hW, hbu, invu)
+            Wu, Wu_t, Wu_s = pu * Su * ibu, tu * ibu, su * ibu * s * invu
+            pv, tv, sv = _pixel_box(v, hW, hbv, invv)
+            Wv, Wv_t, Wv_s = pv * Sv * ibv, tv * ibv, sv * ibv * s * invv
+            t_ = Lu * Wv + Wu * Lv - Wu * Wv
+            tu_ = Lu_t * Wv + Wu_t * Lv - Wu_t * Wv
+            tv_ = Lu * Wv_t + Wu * Lv_t - Wu * Wv_t
+            ts_ = Lu_s * Wv + Lu * Wv_s + Wu_s * Lv + Wu * Lv_s - Wu_s * Wv - Wu * Wv_s
+            qs = Qs[i, j]
+            bg = S[i, j] + gx * x + gy * y + sat * qs
+            b = bb - bg
+            M[i, j] = a + bg + b * t_
+            T[i, j] = t_
+            Tu[i, j] = tu_
+            Tv[i, j] = tv_
+            U[i, j] = u
+            V[i, j] = v
+            bu_ = b * tu_
+            bv_ = b * tv_
+            om = _ONE - t_
+            J[i, j, 0] = -(bu_ * a00 + bv_ * a10)
+            J[i, j, 1] = -(bu_ * a01 + bv_ * a11)
+            J[i, j, 2] = bu_ * dx
+            J[i, j, 3] = bu_ * dy
+            J[i, j, 4] = bv_ * dx
+            J[i, j, 5] = bv_ * dy
+            J[i, j, 6] = b * ts_
+            J[i, j, 7] = _ONE
+            J[i, j, 8] = t_
+            J[i, j, 9] = x * om
+            J[i, j, 10] = y * om
+            J[i, j, 11] = qs * om
 
 
 def cross_model(p, data, shape):
@@ -183,15 +187,12 @@ def cross_model(p, data, shape):
     the mark frame's u and v, the pixels' mark-frame coordinates (all (N, P) float32) and the
     Jacobian (N, P, 12) float32 -- as ``lsm._geom`` and ``lsm._assemble`` give them.
     """
-    global _KERNEL
-    if _KERNEL is None:
-        _KERNEL = _define()
     X, Y = data[0], data[1]
     n, npx = X.shape
     q = np.ascontiguousarray(p, np.float32)
     out = [np.empty((n, npx), np.float32) for _ in range(6)]
     J = np.empty((n, npx, 12), np.float32)
-    _KERNEL(np.ascontiguousarray(X), np.ascontiguousarray(Y), np.ascontiguousarray(data[4]),
+    _kernel(np.ascontiguousarray(X), np.ascontiguousarray(Y), np.ascontiguousarray(data[4]),
             np.ascontiguousarray(data[6]), q, _f4(shape.length), _f4(shape.width), *out, J)
     M, T, Tu, Tv, u, v = out
     return M, T, Tu, Tv, u, v, J
