@@ -6,9 +6,75 @@ offered, and :func:`softplot.cli.main` (the ``softplot`` command) applies them a
 
 from __future__ import annotations
 
-_TUNED = False
+import os
+import threading
 
-__all__ = ["tune_allocator"]
+_TUNED = False
+_THREADS: int | None = None
+_POOL = None
+_POOL_LOCK = threading.Lock()
+_IN_POOL = threading.local()
+
+__all__ = ["tune_allocator", "set_threads", "threads", "thread_map"]
+
+
+def set_threads(n: int | None) -> None:
+    """Threads mark detection may use in this process (None: the default of :func:`threads`).
+
+    ``softplot batch`` sets 1 in its worker processes, which already use every core.
+    """
+    global _THREADS, _POOL
+    _THREADS = None if n is None else max(1, int(n))
+    with _POOL_LOCK:
+        if _POOL is not None:
+            _POOL.shutdown(wait=False)
+            _POOL = None
+
+
+def threads() -> int:
+    """The thread count: :func:`set_threads`, else ``SOFTPLOT_THREADS``, else the number of
+    cores this process may run on, at most 2 (the independent pieces of one detection --
+    strips of the correlation map, chunks of marks -- gain little from more)."""
+    if _THREADS is not None:
+        return _THREADS
+    env = os.environ.get("SOFTPLOT_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return max(1, min(2, n))
+
+
+def _run_marked(fn, x):
+    _IN_POOL.active = True
+    try:
+        return fn(x)
+    finally:
+        _IN_POOL.active = False
+
+
+def thread_map(fn, items) -> list:
+    """``[fn(x) for x in items]``, on :func:`threads` threads when there are several items.
+
+    For work that releases the GIL (OpenCV, large NumPy operations, the compiled LSM kernel).
+    The results are in the order of ``items`` and equal to the sequential ones; a call from
+    inside a pool thread runs sequentially (no nested pools), and the first exception is
+    raised in the caller.
+    """
+    items = list(items)
+    n = threads()
+    if n <= 1 or len(items) <= 1 or getattr(_IN_POOL, "active", False):
+        return [fn(x) for x in items]
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="softplot")
+        pool = _POOL
+    return list(pool.map(lambda x: _run_marked(fn, x), items))
 
 
 def tune_allocator() -> None:

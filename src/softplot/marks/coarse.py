@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from softplot.marks.template import MarkShape, render
+from softplot.runtime import thread_map
 
 __all__ = ["overview", "overview_compact", "Overview", "ov_to_full", "full_to_ov", "ncc_map",
            "find_peaks", "Peaks", "local_std"]
@@ -241,11 +242,14 @@ def ncc_map(image: np.ndarray, shape: MarkShape, s: float, A=None,
     # tiles) then stay a few megabytes whatever the image size
     R = np.empty((H - th + 1, W - tpl.shape[1] + 1), np.float32)
     step = max(64, _NCC_STRIP_BYTES // (4 * W))
-    for a in range(0, R.shape[0], step):
+
+    def strip(a):  # disjoint rows of R; OpenCV releases the GIL: strips run on the threads
         b = min(a + step, R.shape[0])
         R[a:b] = cv2.matchTemplate(np.ascontiguousarray(image[a : b + th - 1], np.float32),
                                    tpl, cv2.TM_CCOEFF_NORMED)
         np.nan_to_num(R[a:b], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+
+    thread_map(strip, range(0, R.shape[0], step))
     return R, h
 
 

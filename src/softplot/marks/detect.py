@@ -36,6 +36,7 @@ from softplot.marks import coarse, grid
 from softplot.marks.measure import AcceptRules, measure
 from softplot.marks.result import Detection
 from softplot.marks.template import cross_shape
+from softplot.runtime import thread_map
 
 __all__ = ["detect", "as_scan", "DetectionError"]
 
@@ -689,10 +690,14 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
         if grp.size == 0:
             continue
         Ag = A[rej[grp]] if fit_shape else held[rej[grp]]
-        for k in range(4):
-            f2 = measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
-                         anchor=target[grp], max_shift=max_shift, drop_part=k,
-                         fit_shape=fit_shape)
+
+        def fit(k, grp=grp, Ag=Ag, fit_shape=fit_shape):
+            return measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
+                           anchor=target[grp], max_shift=max_shift, drop_part=k,
+                           fit_shape=fit_shape)
+
+        # the four fits are independent (on the threads); merged in order
+        for f2 in thread_map(fit, range(4)):
             sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]

@@ -13,6 +13,7 @@ import numpy as np
 from softplot.marks.coarse import _release_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame
 from softplot.marks.template import MarkShape
+from softplot.runtime import thread_map
 
 __all__ = ["patches", "Fine", "measure", "AcceptRules"]
 
@@ -272,12 +273,18 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if idx is None or idx.size == 0:
             break
         retry = []
-        for k in np.array_split(idx, -(-idx.size // chunk)):
+
+        def run(k, p_i=p_i, ie=ie):
             # the retry starts from the model's prediction (the anchor): the first start may
             # have been a scene feature
             start = c0[k] if p_i == 0 else anchor[k]
             res = _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene, drop_part)
-            good, why = _accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
+            return res, *_accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
+
+        # chunks are independent: fitted on the process's threads (runtime.thread_map), the
+        # results merged in order (the same as one after the other)
+        chunks = np.array_split(idx, -(-idx.size // chunk))
+        for k, (res, good, why) in zip(chunks, thread_map(run, chunks), strict=True):
             for j, i in enumerate(k):
                 if p_i == 0 or good[j]:
                     xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]

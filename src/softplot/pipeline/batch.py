@@ -154,10 +154,25 @@ def check_stems(scans: list[Path]) -> None:
         seen[s.stem] = s
 
 
+def _one_thread_in_worker() -> None:
+    """In a dask worker process (one per core already) detection runs on one thread."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return
+    from softplot.runtime import set_threads, threads
+
+    if threads() != 1:
+        set_threads(1)
+
+
 def run_one(task: Callable[..., dict], scan: str, out_dir: str, kwargs: dict) -> dict:
     """Worker side: process one scan, never raise; the outcome is a small summary dict."""
     t0 = time.perf_counter()
     scan_p = Path(scan)
+    _one_thread_in_worker()
     try:
         res = task(scan_p, Path(out_dir), **kwargs)
         res.setdefault("status", "done")

@@ -1,0 +1,53 @@
+"""Threads inside one detection (softplot.runtime.thread_map): same results, no nesting."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from softplot import runtime
+from softplot.marks import detect
+from softplot.synthetic import ScanSpec, render_scan
+
+
+@pytest.fixture
+def restore_threads():
+    yield
+    runtime.set_threads(None)
+
+
+def test_thread_map_keeps_order_runs_on_threads_and_never_nests(restore_threads):
+    runtime.set_threads(2)
+    names = []
+
+    def inner(x):
+        names.append(threading.current_thread().name)
+        return x * x
+
+    def outer(x):
+        # a nested call runs in the calling pool thread, one item after the other
+        return runtime.thread_map(inner, range(x, x + 3))
+
+    out = runtime.thread_map(outer, range(6))
+    assert out == [[x * x for x in range(i, i + 3)] for i in range(6)]
+    assert all(n.startswith("softplot") for n in names)
+    with pytest.raises(ZeroDivisionError):
+        runtime.thread_map(lambda x: 1 // x, [1, 0, 2])
+    runtime.set_threads(1)
+    names.clear()
+    assert runtime.thread_map(inner, [3]) == [9]
+    assert names == [threading.current_thread().name]
+
+
+def test_detection_is_the_same_on_one_and_two_threads(restore_threads):
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=600, scene="busy", rotation_deg=2.0),
+                             3)
+    out = {}
+    for n in (1, 2):
+        runtime.set_threads(n)
+        out[n] = detect(img, "rollei-6006", dpi=truth["dpi"])
+    assert out[1].status == out[2].status
+    assert np.array_equal(out[1].xy, out[2].xy, equal_nan=True)
+    assert out[1].measured.sum() >= 100
