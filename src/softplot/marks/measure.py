@@ -131,23 +131,39 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
     op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
     C = cv2.morphologyEx(big, op, k, borderType=cv2.BORDER_REPLICATE)
+    del big
     S = cv2.blur(C, (3, 3))
     # the closing of a noisy patch is lumpy on the scale of the disc; where the scene is
     # smooth a wider mean removes the lumps, near scene edges the 3x3 mean is kept
     kl = (d + 4) | 1
     SL = cv2.blur(C, (kl, kl))
+    del C
     # the patch's noise: MAD of data minus estimate (every third pixel is plenty)
     nz = np.abs(q - S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]).reshape(n, -1)[:, ::3]
     nz = np.maximum(1.4826 * np.median(nz, axis=1), 1e-4).astype(np.float32)
     nzb = np.repeat(nz, h + 2 * pad)[:, None]
-    al = 1.0 / (1.0 + ((SL - S) / (0.75 * nzb)) ** 2)
-    S = al * SL + (1.0 - al) * S
+    # S += al (SL - S) with al = 1 / (1 + ((SL - S) / (0.75 noise))^2), in place (the working
+    # set of a chunk of patches bounds the fine stage's memory)
+    SL -= S
+    al = SL / (np.float32(0.75) * nzb)
+    al *= al
+    al += np.float32(1.0)
+    np.reciprocal(al, out=al)
+    SL *= al
+    S += SL
+    del SL, al
     gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3)
+    g = cv2.magnitude(gx, gy)
+    del gx, gy
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
-    g = (np.hypot(gx, gy) / 8.0).reshape(n, h + 2 * pad, w)[:, pad : pad + h]
-    wts = 1.0 / (1.0 + (delta * g / nz[:, None, None]) ** 2)
-    return np.ascontiguousarray(S), wts.astype(np.float32)
+    g = g.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
+    # prior weights 1 / (1 + (delta |grad S| / noise)^2), |grad S| = |Sobel| / 8
+    wts = g * (np.float32(delta / 8.0) / nz[:, None, None])
+    wts *= wts
+    wts += np.float32(1.0)
+    np.reciprocal(wts, out=wts)
+    return np.ascontiguousarray(S), wts
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None):
@@ -216,7 +232,7 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
 def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
-            max_shift: float | None = None, chunk: int = 40,
+            max_shift: float | None = None, chunk: int = 20,
             drop_part: int | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
