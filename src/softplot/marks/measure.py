@@ -5,7 +5,7 @@ All positions are in the pixel system of the full-resolution scan.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
@@ -192,6 +192,16 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
                background=bg, weight=wt, sat_bg=sat_bg, clip=(0.0, 1.0))
 
 
+def _concat(results: list[LSMResult]) -> LSMResult:
+    """One LSMResult of the marks of several (in order)."""
+    if len(results) == 1:
+        return results[0]
+    kw = {f.name: (max(getattr(r, f.name) for r in results) if f.name == "iterations" else
+                   np.concatenate([getattr(r, f.name) for r in results]))
+          for f in fields(LSMResult)}
+    return LSMResult(**kw)
+
+
 def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
     """Acceptance tests: (ok mask, reasons)."""
     n = len(c0)
@@ -236,7 +246,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             drop_part: int | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
-    Marks are fitted in chunks of ``chunk`` (bounded memory). A first pass trusts ``c0`` to
+    Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
+    the acceptance tests see them all at once. A first pass trusts ``c0`` to
     half a pixel (no capture stage); marks that fail the acceptance tests are fitted again
     from ``anchor`` (the prediction) with the capture stage for ``init_err``, and an accepted
     outcome replaces the first.
@@ -294,19 +305,23 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             # the retry starts from the model's prediction (the anchor): the first start may
             # have been a scene feature
             start = c0[k] if p_i == 0 else anchor[k]
-            res = _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene, drop_part)
-            return res, *_accept(res, start, A0[k], s0, sign, rules, anchor[k], max_shift)
+            return _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene, drop_part)
 
-        # chunks are independent: fitted on the process's threads (runtime.thread_map), the
-        # results merged in order (the same as one after the other)
-        chunks = np.array_split(idx, -(-idx.size // chunk))
-        for k, (res, good, why) in zip(chunks, thread_map(run, chunks), strict=True):
-            for j, i in enumerate(k):
-                if p_i == 0 or good[j]:
-                    xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
-                    score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
-                if not good[j]:
-                    retry.append(i)
+        # chunks are independent: fitted on the process's threads (runtime.thread_map); the
+        # acceptance tests then see all marks at once, so the outcome does not depend on how
+        # the marks were chunked. Even a few marks (refits, retries) make two chunks, one per
+        # thread; the chunking does not depend on the thread count (the results are the same
+        # on any machine)
+        size = max(1, min(int(chunk), max(4, -(-idx.size // 2))))
+        res = _concat(thread_map(run, np.array_split(idx, -(-idx.size // size))))
+        start = c0[idx] if p_i == 0 else anchor[idx]
+        good, why = _accept(res, start, A0[idx], s0, sign, rules, anchor[idx], max_shift)
+        for j, i in enumerate(idx):
+            if p_i == 0 or good[j]:
+                xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
+                score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
+            if not good[j]:
+                retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
     return Fine(xy, cov, score, cnr, ok, reason, None, Afit)
