@@ -20,6 +20,10 @@ Robustness: the first iterations use a wide blur (``s`` fixed large) to widen th
 then all parameters are free and pixel weights follow Tukey's biweight on the residuals scaled by
 their MAD, so that dust or a scratch over one arm gets weight 0 and does not pull the centre.
 The covariance of the centre is ``sigma0**2 * N^-1`` of the final weighted normal equations.
+
+For crosses the model and Jacobian of each step come from the compiled kernel of
+:mod:`softplot.marks.kernels` when numba is there (the same values to float32 rounding), else
+from :func:`_geom` and :func:`_assemble` (NumPy).
 """
 
 from __future__ import annotations
