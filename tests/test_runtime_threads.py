@@ -49,5 +49,9 @@ def test_detection_is_the_same_on_one_and_two_threads(restore_threads):
         runtime.set_threads(n)
         out[n] = detect(img, "rollei-6006", dpi=truth["dpi"])
     assert out[1].status == out[2].status
-    assert np.array_equal(out[1].xy, out[2].xy, equal_nan=True)
-    assert out[1].measured.sum() >= 100
+    # equal to float rounding: a multithreaded BLAS may block a product differently when it
+    # is called from a pool thread (with OPENBLAS_NUM_THREADS=1 they are equal bit for bit)
+    m = out[1].measured
+    assert m.sum() >= 100
+    assert np.array_equal(m, out[2].measured)
+    assert np.abs(out[1].xy[m] - out[2].xy[m]).max() < 1e-6
