@@ -72,3 +72,19 @@ def test_detection_without_the_compiled_kernel_is_the_same(monkeypatch):
     m = jit.measured
     d = np.abs(jit.xy[m] - ref.xy[m]).max()
     assert d < 0.05 * float(np.median(jit.sigma[m])), d
+
+
+def test_a_kernel_that_fails_to_compile_falls_back_to_numpy(monkeypatch):
+    from softplot.marks import kernels
+
+    def broken(*args):
+        raise RuntimeError("no LLVM target for this CPU")
+
+    monkeypatch.setattr(kernels, "AVAILABLE", True)
+    monkeypatch.setattr(kernels, "_LOADED", False)
+    monkeypatch.setattr(kernels, "_kernel", broken)
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=500), 6)
+    with pytest.warns(RuntimeWarning, match="compiled LSM kernel unavailable"):
+        det = detect(img, "rollei-6006", dpi=truth["dpi"])
+    assert not kernels.AVAILABLE
+    assert det.measured.sum() >= 115

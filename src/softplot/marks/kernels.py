@@ -21,12 +21,14 @@ each mark's reference pixel). Without numba (or with ``SOFTPLOT_JIT=0`` in the e
 from __future__ import annotations
 
 import os
+import threading
+import warnings
 
 import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model", "load"]
+__all__ = ["AVAILABLE", "cross_model", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -198,17 +200,39 @@ def cross_model(p, data, shape):
     return M, T, Tu, Tv, u, v, J
 
 
-def load() -> bool:
-    """Compile (or load from numba's cache) the kernel now, on a tiny input; returns
-    :data:`AVAILABLE`. The JIT runtime (LLVM) and the machine code are a fixed cost of the
-    process, like a library's code; benchmarks call this before they measure a scan."""
-    if not AVAILABLE:
-        return False
-    from softplot.marks.template import MarkShape
+_LOADED = False
+_LOAD_LOCK = threading.Lock()
 
-    z = np.zeros((1, 1), np.float32)
-    p = np.zeros((1, 12))
-    p[0, 2] = p[0, 5] = 1.0
-    p[0, 6] = 1.0
-    cross_model(p, (z, z, z, z > 0, z, z, z, z), MarkShape("cross", length=5.0, width=1.0))
-    return True
+
+def load() -> bool:
+    """Compile (or load from numba's cache) the kernel now, on a tiny input; returns whether
+    it can be used (:data:`AVAILABLE`). The JIT runtime (LLVM) and the machine code are a
+    fixed cost of the process, like a library's code; benchmarks call this before they
+    measure a scan. Should numba fail to compile it here (an unsupported platform, a broken
+    cache), :data:`AVAILABLE` turns False with a warning and LSM uses its NumPy path."""
+    global AVAILABLE, _LOADED
+    if not AVAILABLE or _LOADED:
+        return AVAILABLE
+    with _LOAD_LOCK:  # the threads of one detection may ask at once
+        if _LOADED or not AVAILABLE:
+            return AVAILABLE
+        from softplot.marks.template import MarkShape
+
+        z = np.zeros((1, 1), np.float32)
+        p = np.zeros((1, 12))
+        p[0, 2] = p[0, 5] = 1.0
+        p[0, 6] = 1.0
+        try:
+            cross_model(p, (z, z, z, z > 0, z, z, z, z),
+                        MarkShape("cross", length=5.0, width=1.0))
+        except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path
+            warnings.warn(f"softplot: compiled LSM kernel unavailable ({type(exc).__name__}: "
+                          f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)
+            AVAILABLE = False
+        _LOADED = True
+    return AVAILABLE
+
+
+def ready() -> bool:
+    """Whether LSM should call :func:`cross_model` (compiled and working)."""
+    return AVAILABLE and (_LOADED or load())

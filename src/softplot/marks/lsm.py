@@ -301,7 +301,7 @@ def _step(p, data, shape, active, robust, init=False):
     data on the template at the current geometry.
     """
     G, valid = data[2], data[3]
-    jit = shape.kind == "cross" and kernels.AVAILABLE
+    jit = shape.kind == "cross" and kernels.ready()
     if not jit:
         geo = _geom(p, data, shape)
         T = geo[0]
