@@ -154,14 +154,11 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
     signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
     cands = {}
-
-    def peaks(sg):
-        return coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
-                                 threshold=0.2, max_peaks=3 * res.count + 100, sign=sg,
-                                 image=ov, std_half=max(int(arm_half), 2),
-                                 min_contrast=noise_floor)
-
-    for sg, pk in zip(signs, thread_map(peaks, signs), strict=True):  # polarities on threads
+    for sg in signs:
+        pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
+                               threshold=0.2,
+                               max_peaks=3 * res.count + 100, sign=sg, image=ov,
+                               std_half=max(int(arm_half), 2), min_contrast=noise_floor)
         if len(pk) < 4:
             continue
         # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
