@@ -193,7 +193,8 @@ def overview_compact(scan, factor: int) -> Overview:
         return Overview(q, scale, scan.min_is_white)
     row_bytes = data.shape[1] * data.dtype.itemsize * max(scan.channels, 1)
     step = max(1, _STRIP_BYTES // max(row_bytes * f, 1)) * f
-    for a in range(0, H * f, step):
+
+    def strip(a):  # disjoint rows of q; OpenCV releases the GIL: strips run on the threads
         b = min(a + step, H * f)
         blk = data[a:b, : W * f]
         if blk.ndim == 3:
@@ -202,6 +203,8 @@ def overview_compact(scan, factor: int) -> Overview:
         q[a // f : b // f] = (cv2.resize(blk, (W, (b - a) // f), interpolation=cv2.INTER_AREA)
                               if f > 1 else blk)
         _release_rows(data, a, b)
+
+    thread_map(strip, range(0, H * f, step))
     return Overview(q, scale, scan.min_is_white)
 
 
