@@ -88,3 +88,36 @@ def test_a_kernel_that_fails_to_compile_falls_back_to_numpy(monkeypatch):
         det = detect(img, "rollei-6006", dpi=truth["dpi"])
     assert not kernels.AVAILABLE
     assert det.measured.sum() >= 115
+
+
+def test_thread_count_from_the_environment(monkeypatch, restore_threads):
+    from softplot.errors import SoftplotError
+
+    runtime.set_threads(None)
+    monkeypatch.setenv("SOFTPLOT_THREADS", "3")
+    assert runtime.threads() == 3
+    monkeypatch.setenv("SOFTPLOT_THREADS", "zero")
+    with pytest.raises(SoftplotError, match="SOFTPLOT_THREADS must be a positive integer"):
+        runtime.threads()
+    runtime.set_threads(1)  # an explicit setting wins over the environment
+    assert runtime.threads() == 1
+
+
+def test_batch_workers_detect_on_one_thread(restore_threads):
+    """`softplot batch`'s worker processes already use every core: run_one sets 1 thread
+    there, and leaves a process that is not a dask worker alone."""
+    from dask.distributed import Client, LocalCluster
+
+    from softplot.pipeline.batch import _one_thread_in_worker
+
+    runtime.set_threads(2)
+    _one_thread_in_worker()
+    assert runtime.threads() == 2
+
+    def in_worker():
+        _one_thread_in_worker()
+        return runtime.threads()
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        assert client.submit(in_worker, pure=False).result() == 1

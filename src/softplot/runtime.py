@@ -38,7 +38,11 @@ def threads() -> int:
     if _THREADS is not None:
         return _THREADS
     env = os.environ.get("SOFTPLOT_THREADS", "").strip()
-    if env.isdigit() and int(env) > 0:
+    if env:
+        if not (env.isdigit() and int(env) > 0):
+            from softplot.errors import SoftplotError
+
+            raise SoftplotError(f"SOFTPLOT_THREADS must be a positive integer, got {env!r}")
         return int(env)
     try:
         n = len(os.sched_getaffinity(0))

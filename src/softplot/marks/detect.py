@@ -580,7 +580,8 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
     # ill-conditioned are dropped for that query; a plane that is not determined (collinear
     # neighbours) gives no gradient (NaN)
     p = D.shape[-1]
-    N0 = np.matmul((D * w[..., None]).transpose(0, 2, 1), D)
+    DwT0 = (D * w[..., None]).transpose(0, 2, 1)
+    N0 = np.matmul(DwT0, D)
     dg = np.sqrt(np.maximum(np.einsum("qii->qi", N0), 1e-300))
     Nn = N0 / (dg[:, :, None] * dg[:, None, :])  # unit diagonal
     # the leading blocks of Nn are the normalised lower-degree matrices, and no eigenvalue of
@@ -599,17 +600,17 @@ def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=No
         lev_r = np.where((lam > 1e-6) & (lev_r == below), L, lev_r)
         below = L
     level[rest] = lev_r
-    D = D * (np.arange(p)[None, None, :] < np.maximum(level, 3)[:, None, None])
-    Dw = D * w[..., None]
-    DwT = Dw.transpose(0, 2, 1)
-    N = np.matmul(DwT, D) + 1e-9 * np.eye(p)
-    idle = np.arange(p)[None, :] >= np.maximum(level, 3)[:, None]  # dropped terms: coef 0
-    N[:, np.arange(p), np.arange(p)] += idle
+    # the dropped terms' rows and columns of the normal equations are 0 (their coefficients
+    # 0): masks of N0 and of the weighted design, no second product
+    use = (np.arange(p)[None, :] < np.maximum(level, 3)[:, None]).astype(float)  # (Q, p)
+    DwT = DwT0 * use[:, :, None]
+    N = N0 * (use[:, :, None] * use[:, None, :]) + 1e-9 * np.eye(p)
+    N[:, np.arange(p), np.arange(p)] += 1.0 - use
     coef = np.linalg.solve(N, np.matmul(DwT, n_val[j]))  # (Q, p, C)
     if not gradient:
         return coef[:, 0, :]
     Ni = np.linalg.inv(N)
-    var = Ni @ np.matmul(DwT, Dw) @ Ni  # coefficient covariance for unit noise
+    var = Ni @ np.matmul(DwT, DwT.transpose(0, 2, 1)) @ Ni  # coefficients, unit noise
     grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
     grad[level < 3] = np.nan
     return coef[:, 0, :], grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
@@ -634,6 +635,13 @@ def _local_prediction(film, r, k_max=16, sigma=None):
     if inner.any():
         out[inner] = _local_fit(film[inner], film, r, 24, 3, n_sigma=sigma, n_dev=dev)
     return out
+
+
+def _outlier_threshold(spread, floor, sigma):
+    """Largest departure (px) from the neighbours' prediction that is not an outlier:
+    ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s`` the departures' robust spread, ``sigma``
+    the mark's own precision); the outlier test and the rescue share it."""
+    return np.maximum(np.maximum(3.0 * spread, floor), np.minimum(4.5 * spread, 4.0 * sigma))
 
 
 def _spread(dev, edge):
@@ -701,7 +709,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
             sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]
-            thr = np.maximum(np.maximum(3.0 * sp, fl), np.minimum(4.5 * sp, 4.0 * sg))
+            thr = _outlier_threshold(sp, fl, sg)
             d = np.hypot(*(f2.xy - target[grp]).T)
             good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
             for j in np.where(good)[0]:
@@ -743,7 +751,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         spread = _spread(dev, edge[idx])
         sg = np.nan_to_num(sigma[idx], nan=1.0)
         fl = np.broadcast_to(floor_px, (len(film),))[idx]
-        thr = np.maximum(np.maximum(3.0 * spread, fl), np.minimum(4.5 * spread, 4.0 * sg))
+        thr = _outlier_threshold(spread, fl, sg)
         bad = dev > thr
         if not bad.any():
             break

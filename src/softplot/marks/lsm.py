@@ -363,6 +363,12 @@ def _step(p, data, shape, active, robust, init=False):
     return dc, sig, state
 
 
+def _converged(dc, sig, tol):
+    """Marks whose centre update ``dc`` (px) is below ``tol`` or :data:`CONVERGED` times
+    their centre's standard deviation ``sig`` (px)."""
+    return dc < np.maximum(tol, CONVERGED * np.nan_to_num(sig, nan=0.0))
+
+
 def _arm_outliers(p, data, shape, last, z_max=4.0):
     """The half-arm of each cross that disagrees with its opposite half, or -1.
 
@@ -381,7 +387,7 @@ def _arm_outliers(p, data, shape, last, z_max=4.0):
     """
     X, Y, S = data[0], data[1], data[4]
     valid = data[3]
-    # the geometry of each mark's last step (its update was below a fifth of its sigma)
+    # the geometry of each mark's last step (its update was below CONVERGED sigma)
     Tu, Tv, u, v = last["Tu"], last["Tv"], last["u"], last["v"]
     q = p.astype(np.float32)
     b = q[:, 8:9] - (S + q[:, 9:10] * X + q[:, 10:11] * Y + q[:, 11:12] * data[6])
@@ -528,8 +534,7 @@ def lsm(
         for k, v in st.items():
             last[k][todo] = v
         if (rob and it > 2) or not robust:
-            # converged when the update is below tol or a fifth of the centre's precision
-            done = dc < np.maximum(tol, CONVERGED * np.nan_to_num(sig, nan=0.0))
+            done = _converged(dc, sig, tol)
             converged[todo[done]] = True
             todo = todo[~done]
             if todo.size == 0:
@@ -550,7 +555,7 @@ def lsm(
                 p[todo] = q
                 for k_, v_ in st.items():
                     last[k_][todo] = v_
-                done = dc < np.maximum(tol, CONVERGED * np.nan_to_num(sig, nan=0.0))
+                done = _converged(dc, sig, tol)
                 converged[todo[done]] = True
                 todo = todo[~done]
                 if todo.size == 0:
@@ -560,7 +565,7 @@ def lsm(
     sw = np.maximum(vf.sum(1), 1.0)
     npix = valid.sum(1)
 
-    # final statistics: each mark's last step (its update was below a fifth of its sigma)
+    # final statistics: each mark's last step (its update was below CONVERGED sigma)
     M, T, u, v, r = last["M"], last["T"], last["u"], last["v"], last["r"]
     noise = _mad(r, valid)
     w_rob = last["w_rob"]
