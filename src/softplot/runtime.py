@@ -63,8 +63,9 @@ def thread_map(fn, items) -> list:
     """``[fn(x) for x in items]``, on :func:`threads` threads when there are several items.
 
     For work that releases the GIL (OpenCV, large NumPy operations, the compiled LSM kernel).
-    The results are in the order of ``items`` and those of the sequential loop (to float
-    rounding where a multithreaded BLAS blocks a product differently in a pool thread); a call from
+    The results are in the order of ``items`` and those of the sequential loop to float
+    rounding (float32 sums may round differently with the arrays' place in memory or a
+    multithreaded BLAS's split of a product); a call from
     inside a pool thread runs sequentially (no nested pools), and the first exception is
     raised in the caller.
     """
