@@ -121,3 +121,28 @@ def test_batch_workers_detect_on_one_thread(restore_threads):
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                       dashboard_address=None) as cluster, Client(cluster) as client:
         assert client.submit(in_worker, pure=False).result() == 1
+
+
+def test_fine_stage_does_not_depend_on_the_chunking():
+    """Each mark's LSM iterations and the acceptance tests (over all marks of a pass) do not
+    depend on which marks share a chunk: chunks of 4 and one chunk of all give the same."""
+    from softplot.camera import load_camera
+    from softplot.marks import measure as ME
+    from softplot.marks.detect import as_scan
+    from softplot.marks.template import cross_shape
+
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=600, scene="busy"), 5)
+    ppm = truth["dpi"] / 25.4
+    shape = cross_shape(load_camera("rollei-6006"), ppm)
+    marks = [m for m in truth["marks"] if m["kind"] == "reseau" and m["visible"]][:30]
+    rng = np.random.default_rng(0)
+    c0 = np.array([[m["x"], m["y"]] for m in marks]) + rng.normal(0.0, 0.3, (len(marks), 2))
+    A0 = np.broadcast_to(np.eye(2), (len(marks), 2, 2))  # upright scan: pixel = mark frame
+    scan = as_scan(img, truth["dpi"])
+    s0 = float(np.hypot(truth["render"]["blur_sigma_px"], np.sqrt(1.0 / 12.0)))
+    sign = -1 if truth["polarity"] == "positive" else 1
+    f = {k: ME.measure(scan, shape, c0, A0, s0, 0.75, sign, chunk=k) for k in (4, 64)}
+    assert f[4].ok.sum() >= 25
+    assert np.array_equal(f[4].ok, f[64].ok) and f[4].reason == f[64].reason
+    ok = f[4].ok
+    assert np.abs(f[4].xy[ok] - f[64].xy[ok]).max() < 1e-6

@@ -126,7 +126,11 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
         return np.broadcast_to(med[:, None, None], stack.shape).astype(np.float32), \
             np.ones_like(stack)
     d = int(np.ceil(shape.width + 5.0 * s + 1.0)) | 1
-    pad = d // 2 + 2
+    # rows of replicated border between the stacked patches: the reach of the closing (twice
+    # the disc's radius), the wide mean below and the Sobel, so that no patch's estimate sees
+    # its neighbour in the stack (each is that of the patch alone, edges replicated)
+    kl = (d + 4) | 1
+    pad = 2 * (d // 2) + kl // 2 + 1
     big = np.pad(q, ((0, 0), (pad, pad), (0, 0)), mode="edge").reshape(n * (h + 2 * pad), w)
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
     op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
@@ -135,7 +139,6 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     S = cv2.blur(C, (3, 3))
     # the closing of a noisy patch is lumpy on the scale of the disc; where the scene is
     # smooth a wider mean removes the lumps, near scene edges the 3x3 mean is kept
-    kl = (d + 4) | 1
     SL = cv2.blur(C, (kl, kl))
     del C
     # the patch's noise: MAD of data minus estimate (every third pixel is plenty)
@@ -309,10 +312,10 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
-        # the marks were chunked. Even a few marks (refits, retries) make two chunks, one per
-        # thread; the chunking does not depend on the thread count (the results are the same
-        # on any machine)
-        size = max(1, min(int(chunk), max(4, -(-idx.size // 2))))
+        # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
+        # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
+        # The chunking does not depend on the thread count (the same results on any machine)
+        size = max(1, min(int(chunk), idx.size))
         res = _concat(thread_map(run, np.array_split(idx, -(-idx.size // size))))
         start = c0[idx] if p_i == 0 else anchor[idx]
         good, why = _accept(res, start, A0[idx], s0, sign, rules, anchor[idx], max_shift)
