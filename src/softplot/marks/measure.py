@@ -303,22 +303,21 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if idx is None or idx.size == 0:
             break
         retry = []
+        # the retry starts from the model's prediction (the anchor): the first start may have
+        # been a scene feature
+        starts = c0 if p_i == 0 else anchor
 
-        def run(k, p_i=p_i, ie=ie):
-            # the retry starts from the model's prediction (the anchor): the first start may
-            # have been a scene feature
-            start = c0[k] if p_i == 0 else anchor[k]
-            return _fit(scan, shape, start, A0[k], s0, ie, sign, fit_shape, scene, drop_part)
+        def run(k, starts=starts, ie=ie):
+            return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
+                        drop_part)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        size = max(1, min(int(chunk), idx.size))
-        res = _concat(thread_map(run, np.array_split(idx, -(-idx.size // size))))
-        start = c0[idx] if p_i == 0 else anchor[idx]
-        good, why = _accept(res, start, A0[idx], s0, sign, rules, anchor[idx], max_shift)
+        res = _concat(thread_map(run, np.array_split(idx, -(-idx.size // max(1, int(chunk))))))
+        good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx], max_shift)
         for j, i in enumerate(idx):
             if p_i == 0 or good[j]:
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
