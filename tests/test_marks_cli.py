@@ -128,3 +128,18 @@ def test_cli_rotate_and_given_polarity(scans):
                 "positive", "--json", str(d / "rb-wrong.json"))
     assert wrong.returncode == 2
     assert len(wrong.stderr.strip().splitlines()) == 1 and "reseau" in wrong.stderr
+
+
+def test_cli_keeps_existing_results_without_overwrite(scans):
+    d, (a, _), _ = scans
+    out = d / "kept.json"
+    out.write_text("{}\n", encoding="utf-8")
+    mm = d / "mm-kept"
+    r = run(str(a), "--camera", "rollei-6006", "--json", str(out), "--micmac", str(mm))
+    assert r.returncode == 2
+    err = [line for line in r.stderr.splitlines() if line.strip()]
+    assert len(err) == 1 and "kept.json: exists" in err[0] and "--overwrite" in err[0]
+    assert out.read_text(encoding="utf-8") == "{}\n" and not mm.exists()
+    r = run(str(a), "--camera", "rollei-6006", "--json", str(out), "--overwrite")
+    assert r.returncode == 0, r.stderr
+    assert len(json.loads(out.read_text(encoding="utf-8"))["marks"]) == 121

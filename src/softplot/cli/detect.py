@@ -38,18 +38,21 @@ def _out_path(base: Path | None, stem: str, many: bool, suffix: str) -> Path | N
               help="QC plot PNG (several scans: <name>-<scan stem>.png).")
 @click.option("--micmac", type=click.Path(file_okay=False), default=None,
               help="Write MicMac MeasuresIm-<image>.xml into this folder.")
+@click.option("--overwrite", is_flag=True, help="Replace existing result files.")
 @click.pass_context
-def command(ctx, scans, camera, dpi, polarity, rotate, json_out, out_dir, plot, micmac):
+def command(ctx, scans, camera, dpi, polarity, rotate, json_out, out_dir, plot, micmac,
+            overwrite):
     """Detect and measure the reseau crosses or fiducial marks of SCAN...
 
     Prints one summary line per scan; the result JSON (keys of issue 3: image, camera, width,
     height, dpi, polarity, marks, transform, rms_px, warnings) goes to --json or --out-dir.
     A bad scan is reported in one line and the others are still processed (exit code 2).
+    Existing result files are never replaced without --overwrite.
     """
     from softplot.camera import load_camera
     from softplot.io import load_scan
     from softplot.marks import detect
-    from softplot.marks.micmac import write_measures_im
+    from softplot.marks.micmac import micmac_name, write_measures_im
     from softplot.marks.qc import plot_qc
 
     cam = load_camera(camera)
@@ -60,6 +63,15 @@ def command(ctx, scans, camera, dpi, polarity, rotate, json_out, out_dir, plot, 
     for o in (json_out, plot):
         if o and Path(o).resolve() in inputs:
             raise SoftplotError(f"{o}: is an input scan; refusing to overwrite it")
+    if not overwrite:  # every file this run would write, checked before any work is done
+        for s in scans:
+            p = Path(s)
+            targets = [json_out and Path(json_out), out_dir and Path(out_dir) / f"{p.stem}.json",
+                       _out_path(Path(plot) if plot else None, p.stem, many, ".png"),
+                       micmac and Path(micmac) / micmac_name(p.name)]
+            for t in targets:
+                if t and t.exists():
+                    raise SoftplotError(f"{t}: exists; refusing to overwrite (use --overwrite)")
     failed = 0
     iterator = scans
     if many and sys.stderr.isatty():
