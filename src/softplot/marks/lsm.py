@@ -306,7 +306,12 @@ def _step(p, data, shape, active, robust, init=False):
         geo = _geom(p, data, shape)
         T = geo[0]
     elif init:
-        T = kernels.cross_model(p, data, shape)[1]
+        # one compiled pass at unit contrast over a zero scene: the template and the purely
+        # geometric Jacobian; the radiometry set below scales it (no second pass)
+        q1 = p.copy()
+        q1[:, 7:12] = (0.0, 1.0, 0.0, 0.0, 0.0)
+        M, T, Tu, Tv, u, v, J = kernels.cross_model(
+            q1, data[:4] + (np.zeros_like(data[4]),) + data[5:], shape)
     if init:
         # linear regression of (data - scene) on T; then the model is linear in a, b
         vf = valid.astype(np.float32)
@@ -320,7 +325,11 @@ def _step(p, data, shape, active, robust, init=False):
         p[:, 7] = mG - b * mT
         p[:, 8] = b + (data[4] * T * vf).sum(1) / np.maximum((T * vf).sum(1), 1e-6)
         p[:, 9:12] = 0.0
-    if jit:  # one compiled pass (softplot.marks.kernels), else NumPy
+    if jit and init:  # tilt and saturated level are 0 now: background S, contrast b - S
+        b = p[:, 8:9].astype(np.float32) - data[4]
+        J[..., :7] *= b[..., None]
+        M = p[:, 7:8].astype(np.float32) + data[4] + b * T
+    elif jit:  # one compiled pass (softplot.marks.kernels), else NumPy
         M, T, Tu, Tv, u, v, J = kernels.cross_model(p, data, shape)
     else:
         M, T, u, v, J = _assemble(p, data, geo)
