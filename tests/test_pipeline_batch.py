@@ -62,7 +62,7 @@ def test_batch_failures_and_resume(tmp_path, capsys):
 
     # resume on an existing cluster given by its scheduler address
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
+                      dashboard_address=":0") as cluster:
         code = run_cli("batch", str(src / "*.tif"), "--camera", "rollei-6006", "--out", out,
                        "--scheduler", cluster.scheduler_address, "--quiet")
     assert code == 1
@@ -131,7 +131,7 @@ def test_batch_survives_a_dying_worker(tmp_path):
     out = tmp_path / "out"
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
         with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster:
+                          dashboard_address=":0") as cluster:
             rep = run_batch(scans, out, _crash_on_b, workers=1,
                             scheduler=cluster.scheduler_address, progress=False)
             status = {r["scan"].rsplit("/", 1)[-1]: r for r in rep.rows}

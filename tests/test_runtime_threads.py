@@ -119,7 +119,7 @@ def test_batch_workers_detect_on_one_thread(restore_threads):
         return runtime.threads()
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
         assert client.submit(in_worker, pure=False).result() == 1
 
 

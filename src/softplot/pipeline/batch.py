@@ -238,7 +238,8 @@ def run_batch(
                 n_workers=max(1, workers),
                 threads_per_worker=1,
                 processes=True,
-                dashboard_address=None,
+                # a random port: None does not disable the dashboard (dask/distributed#8136)
+                dashboard_address=":0",
                 memory_limit=memory_limit,
             )
             client = Client(cluster)
