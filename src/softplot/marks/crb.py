@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from softplot.marks.lsm import _parts
 from softplot.marks.template import MarkShape, aperture
 
 #: parameters of the bound: LSM's model on an unsaturated background (centre, affine, blur,
@@ -57,8 +58,6 @@ def _scene_shift_columns(shape, A, u, v, T, B, blur):
     system, rows down), ``u``, ``v`` its mark-frame coordinates. Returns ``(cols (..., 4),
     zone half-width n0)``.
     """
-    from softplot.marks.lsm import _parts
-
     gy, gx = np.gradient(np.asarray(B, float))
     Ai = np.linalg.inv(np.asarray(A, float))
     parts = _parts(shape, u, v)
