@@ -44,6 +44,7 @@ def test_cli_json_plot_micmac(scans):
     assert "ra.tif: 119/121 marks measured" in r.stdout
     doc = json.loads(out.read_text())
     assert KEYS <= set(doc)
+    assert doc["scene"] in ("opening", "joint")
     assert len(doc["marks"]) == 121
     truth = json.loads(ta.read_text())
     tm = {m["name"]: m for m in truth["marks"]}
@@ -113,10 +114,10 @@ def test_cli_rotate_and_given_polarity(scans):
     save_tiff(turned, np.ascontiguousarray(np.rot90(img, 1)), dpi=650)
     out = d / "rb-turned.json"
     r = run(str(turned), "--camera", "rollei-6006", "--rotate", "90", "--polarity", "negative",
-            "--json", str(out))
+            "--scene", "joint", "--json", str(out))
     assert r.returncode == 0, r.stderr
     doc = json.loads(out.read_text())
-    assert doc["polarity"] == "negative"
+    assert doc["polarity"] == "negative" and doc["scene"] == "joint"
     marks = {m["name"]: m for m in doc["marks"] if m["status"] == "measured"}
     assert len(marks) >= 120
     W = img.shape[1]

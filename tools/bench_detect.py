@@ -24,6 +24,10 @@ Cases
 * ``rollei-2400``: synthetic Rollei 6006 scan, 121 crosses, 2400 dpi (about 5400 x 5400 px,
   8-bit grey, uncompressed TIFF).
 * ``rollei-1200``: the same at 1200 dpi.
+* ``rollei-1200-busy``, ``rollei-2400-busy``: the same over a busy scene (blocks, roads,
+  discs): ``detect`` takes the joint scene estimate there (``scene="auto"``), which costs
+  3-5 times the fine stage; not a case of issue 3's point 7, which names no scene (the
+  other Rollei cases have the renderer's default texture).
 * ``aerial-19k``: a 19200 x 19200 px 8-bit scan (230 mm at 12 um) of a Zeiss RMK A 15/23
   frame: a smooth grey background with grain and the 8 fiducials (4 circle-dots, 4 crosses)
   stamped at known positions (the synthetic renderer would take minutes at this size).
@@ -47,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-CASES = ("rollei-2400", "rollei-1200", "aerial-19k")
+CASES = ("rollei-2400", "rollei-1200", "aerial-19k", "rollei-1200-busy", "rollei-2400-busy")
 
 
 def make_inputs(d: Path, cases) -> dict:
@@ -63,7 +67,9 @@ def make_inputs(d: Path, cases) -> dict:
             warm[cam] = write_scan(d, cam, ScanSpec(dpi=dpi), seed=1, stem=f"warm-{cam}")[0]
         if c.startswith("rollei"):
             dpi = float(c.split("-")[1])
-            img, truth = write_scan(d, cam, ScanSpec(dpi=dpi, rotation_deg=1.5), seed=7, stem=c)
+            scene = "busy" if c.endswith("-busy") else "texture"
+            img, truth = write_scan(d, cam, ScanSpec(dpi=dpi, rotation_deg=1.5, scene=scene),
+                                    seed=7, stem=c)
             out[c] = (img, cam, warm[cam])
         elif c == "aerial-19k":
             out[c] = (make_aerial(d / "aerial-19k.tif"), cam, warm[cam])
@@ -220,15 +226,15 @@ def main() -> None:
             m = _memory(path, cam, warm)
             px = m["fresh"]["pixel_bytes"]
 
-            print(f"{c:12s} {sc.width}x{sc.height} px, pixels {px / 2**20:.1f} MiB: median "
+            print(f"{c:16s} {sc.width}x{sc.height} px, pixels {px / 2**20:.1f} MiB: median "
                   f"{statistics.median(times):.3f} s (min {min(times):.3f}, n={len(times)}), "
-                  f"measured {det.measured.sum()}/{len(det)}")
-            print(f"{'':12s} peak memory: RSS scan {_fig(m, 'warm', px)} [warm-up leftover "
+                  f"measured {det.measured.sum()}/{len(det)}, scene model {det.scene}")
+            print(f"{'':16s} peak memory: RSS scan {_fig(m, 'warm', px)} [warm-up leftover "
                   f"{m['warm']['leftover'] / 2**20:.1f} MiB included], "
                   f"RSS fresh {_fig(m, 'fresh', px)}, "
                   f"traced {_fig(m, 'traced', px)}")
             stages = {k: round(v, 3) for k, v in det.timings.items()}
-            print(f"{'':12s} stages (cumulative s): {stages}")
+            print(f"{'':16s} stages (cumulative s): {stages}")
     print(f"load average at end: {_load()}")
 
 

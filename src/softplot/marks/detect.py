@@ -12,12 +12,18 @@ Pipeline for a reseau camera (pixel system throughout, film mm for the certifica
    template;
 4. prediction of every cross (model + interpolated residuals of its neighbours), a local search
    in the NCC map, and least-squares template matching at full resolution
-   (:mod:`softplot.marks.lsm`) with robust weights;
+   (:mod:`softplot.marks.lsm`) with robust weights, against the scene under each cross as the
+   grey opening estimates it (:func:`softplot.marks.measure.scene_background`); where the
+   scene has sharp edges at the crosses (``scene="auto"``, :func:`_busy_scene`) the crosses
+   are measured again with the scene estimated jointly with each cross
+   (:mod:`softplot.marks.scene_tv`: TV-regularised deconvolution with the fitted cross held,
+   then LSM again, twice);
 5. acceptance tests (contrast, correlation, shape, support of each arm): a mark that fails is
    "missing"; crosses whose extent leaves the scan are "missing" (cut) without a fit;
 6. the global projective model refitted to the measured crosses; a cross whose residual
    departs from its neighbours' (a smooth film deformation moves neighbours alike) by more than
-   a robust threshold is "rejected".
+   a robust threshold is "rejected"; measured crosses that lie farther than
+   :data:`MAX_GRID_RMS_MM` (rms) off any projective grid are not a reseau (an error).
 
 Fiducial cameras go through :mod:`softplot.marks.fiducial`.
 """
@@ -48,6 +54,18 @@ OUTLIER_FLOOR_MM = 0.0025
 #: inside the grid the local cubic follows a 100 um deformation to a few tenths of a
 #: micrometre (no false rejection in the sweep down to 0.02 px): floor max(px, film mm)
 OUTLIER_FLOOR_INNER = (0.05, 0.0005)
+#: a reseau's measured crosses lie within this (film mm, rms) of a projective grid: three
+#: times the largest film deformation of issue 3 (100 um); more is not a reseau
+MAX_GRID_RMS_MM = 0.3
+#: the scene models of :func:`detect` (``scene=``)
+SCENE_MODELS = ("auto", "opening", "joint")
+#: refits with the joint scene estimate (:func:`softplot.marks.measure._refit_scene`)
+JOINT_PASSES = 2
+#: ``scene="auto"`` takes the joint scene estimate when at least BUSY_COUNT crosses have a
+#: scene edge steeper than BUSY_EDGE x their contrast per px in their footprint. The sweep's
+#: smooth textures reach 0.09 at most, its busy scenes 0.18-0.5 (docs/accuracy.md)
+BUSY_EDGE = 0.13
+BUSY_COUNT = 2
 
 
 class DetectionError(SoftplotError):
@@ -193,6 +211,7 @@ def detect(
     rotate: float = 0.0,
     blur_px: float = 1.0,
     rules: AcceptRules | None = None,
+    scene: str = "auto",
 ) -> Detection:
     """Detect and measure the reseau crosses and fiducial marks of a scan.
 
@@ -215,6 +234,11 @@ def detect(
         Expected scanner blur sigma (px), only the LSM starting value.
     rules : AcceptRules, optional
         Acceptance thresholds.
+    scene : {"auto", "opening", "joint"}
+        The scene under each cross: "opening" the grey opening's estimate
+        (:func:`softplot.marks.measure.scene_background`); "joint" also refitted with the
+        scene estimated jointly with the cross (:mod:`softplot.marks.scene_tv`); "auto"
+        the joint estimate where the scene has sharp edges near the crosses.
 
     Returns
     -------
@@ -223,6 +247,8 @@ def detect(
     t0 = time.perf_counter()
     cam = load_camera(camera)
     sc = as_scan(scan, dpi=dpi)
+    if scene not in SCENE_MODELS:
+        raise SoftplotError(f"scene must be {', '.join(SCENE_MODELS)}, got {scene!r}")
     if polarity not in ("auto", "positive", "negative"):
         raise SoftplotError(f"polarity must be auto, positive or negative, got {polarity!r}")
     name = sc.path.name if sc.path is not None else "<array>"
@@ -231,10 +257,11 @@ def detect(
 
         return detect_fiducials(sc, cam, name=name, dpi=dpi, polarity=polarity, rotate=rotate,
                                 blur_px=blur_px, rules=rules)
-    return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0)
+    return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0, scene)
 
 
-def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> Detection:
+def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
+                   scene="auto") -> Detection:
     res = cam.reseau
     warnings: list[str] = []
     timings: dict = {}
@@ -356,10 +383,16 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
     init_err = max(0.75, 0.5 * f + 0.25)
     idx = np.where(inside)[0]
+    tv = JOINT_PASSES if scene == "joint" else 0
     fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
-                   max_shift=radius_ov * f + 1.0)
+                   max_shift=radius_ov * f + 1.0, scene_tv=tv)
+    if scene == "auto" and _busy_scene(fine.edge[fine.ok]):
+        # sharp scene edges at the crosses: all of them measured again with the joint scene
+        tv = JOINT_PASSES
+        fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules,
+                       anchor=pred[idx], max_shift=radius_ov * f + 1.0, scene_tv=tv)
     _shape_from_neighbours(sc, shape, film[idx], c0[idx], pred[idx], fine, s0, init_err, sign,
-                           rules, radius_ov * f + 1.0, ppm)
+                           rules, radius_ov * f + 1.0, ppm, scene_tv=tv)
     timings["lsm"] = time.perf_counter() - t0
 
     xy = np.full((N, 2), np.nan)
@@ -387,7 +420,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
     A_fit = A0.copy()
     A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
     if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
-               init_err, sign, rules, radius_ov * f + 1.0, ppm):
+               init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv):
         sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
         Hm, residual, rms = _reject_outliers(film, xy, status, reason, Hm, sigma,
                                              floor_px=floor_px)
@@ -401,6 +434,14 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{_polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
             f"{n_meas} of the {len(idx)} inside the scan")
+    if rms > MAX_GRID_RMS_MM * ppm:
+        # measured, but not on a grid: fits to scene content (e.g. the wrong polarity over a
+        # busy scene), not a reseau deformed by at most a tenth of a millimetre
+        raise DetectionError(
+            f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
+            f"{_polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, the {n_meas} "
+            f"measured lie {rms:.1f} px (rms) off any projective grid (at most "
+            f"{MAX_GRID_RMS_MM * ppm:.1f} px, {MAX_GRID_RMS_MM} mm, for a reseau)")
     if n_meas < N:
         warnings.append(f"{N - n_meas} of {N} crosses not measured")
     timings["total"] = time.perf_counter() - t0
@@ -429,7 +470,16 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0) -> 
         warnings=warnings,
         dpi_source=dpi_source,
         timings=timings,
+        scene="joint" if tv else "opening",
     )
+
+
+def _busy_scene(edge: np.ndarray) -> bool:
+    """Whether the scene has sharp edges at the crosses: at least :data:`BUSY_COUNT` (accepted)
+    crosses whose footprint holds a scene edge steeper than :data:`BUSY_EDGE` times their contrast
+    per px (:func:`softplot.marks.measure._scene_edges`)."""
+    e = np.asarray(edge, float)
+    return int(np.sum(np.isfinite(e) & (e > BUSY_EDGE))) >= BUSY_COUNT
 
 
 def _position_affine(film, xy, ok, ppm, k=24):
@@ -471,7 +521,7 @@ def _position_affine(film, xy, ok, ppm, k=24):
 
 
 def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
-                           max_shift, ppm, z_max=2.5):
+                           max_shift, ppm, z_max=2.5, scene_tv=0):
     """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
 
     A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
@@ -504,7 +554,7 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
         return
     start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
-                 max_shift=max_shift, fit_shape=False)
+                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv)
     # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
     # the outlier test's leave-one-out prediction of its residual against a projective model
     both = fine.ok[redo] & f2.ok
@@ -661,7 +711,7 @@ def _outline(film):
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift, ppm):
+            sign, rules, max_shift, ppm, scene_tv=0):
     """Measure rejected crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
@@ -702,7 +752,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
         def fit(k, grp=grp, Ag=Ag, fit_shape=fit_shape):
             return measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
                            anchor=target[grp], max_shift=max_shift, drop_part=k,
-                           fit_shape=fit_shape)
+                           fit_shape=fit_shape, scene_tv=scene_tv)
 
         # the four fits are independent (on the threads); merged in order
         for f2 in thread_map(fit, range(4)):

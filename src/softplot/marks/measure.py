@@ -10,9 +10,10 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
+from softplot.marks import scene_tv
 from softplot.marks.coarse import _release_rows
-from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame
-from softplot.marks.template import MarkShape
+from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
+from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import thread_map
 
 __all__ = ["patches", "Fine", "measure", "AcceptRules"]
@@ -89,6 +90,9 @@ class Fine:
     reason: list
     lsm: LSMResult | None
     A: np.ndarray | None = None
+    #: crosses of the first pass: the sharpest scene edge in the footprint over the contrast
+    #: (:func:`_scene_edges`; NaN where not computed)
+    edge: np.ndarray | None = None
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -169,30 +173,159 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     return np.ascontiguousarray(S), wts
 
 
-def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None):
+def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
+         scene_tv=0, rules=None):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
-    each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0)."""
+    each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
+    passes of the joint scene estimate of :func:`_refit_scene` after the first fit)."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
     bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
+    keep = None
     if drop_part is not None and shape.kind == "cross":
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
         u, v = patch_frame(origin, c0, A, stack.shape)
         keep = _parts(shape, u, v) != drop_part
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
-    # saturated grey values (at the ends of the range) are censored in LSM: they only say "at
-    # least this bright"; where the scene estimate itself is saturated, the scene's true level
-    # beyond the range is a free parameter
-    sat_bg = None
-    if bg is not None:
-        sb = (bg >= 1.0 - 2e-3) | (bg <= 2e-3)
-        if sb.any():
-            sat_bg = sb.astype(np.float32)
-    return lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-               background=bg, weight=wt, sat_bg=sat_bg, clip=(0.0, 1.0))
+    res = lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
+              background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
+    edge = np.full(len(c0), np.nan)
+    if scene and shape.kind == "cross" and np.isfinite(stack).all():
+        edge = _scene_edges(bg, origin, c0, A0, shape, s0, res.gain)
+        if scene_tv:
+            res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
+                               rules or AcceptRules())
+    return res, edge
+
+
+def _scene_edges(bg, origin, c0, A0, shape, s0, gain):
+    """The sharpest scene edge in each cross's footprint: the largest gradient of the scene
+    estimate ``bg`` (px^-1, Sobel / 8) within ``2.5 s0`` px of the drawn bars, over the cross's
+    contrast ``|gain|``. Smooth texture stays below 0.1 (the sweep's textured renders: at
+    most 0.09); the blocks, roads and discs of a busy scene reach 0.2-0.5. (The patches are
+    filtered stacked; the seams between them lie outside every footprint.)"""
+    n, h, w = bg.shape
+    flat = np.ascontiguousarray(bg, np.float32).reshape(n * h, w)
+    grad = cv2.magnitude(cv2.Sobel(flat, cv2.CV_32F, 1, 0, ksize=3),
+                         cv2.Sobel(flat, cv2.CV_32F, 0, 1, ksize=3)).reshape(n, h, w)
+    A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
+    u, v = patch_frame(origin, c0, A, bg.shape)
+    near = support_mask(shape, u, v, 2.5 * s0)
+    top = np.where(near, grad, 0.0).reshape(n, -1).max(1) / 8.0
+    return top / np.maximum(np.abs(gain), 1e-6)
+
+
+def _saturated(bg):
+    """Where the scene estimate is saturated (0/1 float32), or None: saturated grey values (at
+    the ends of the range) are censored in LSM: they only say "at least this bright"; where
+    the scene estimate itself is saturated, the scene's true level beyond the range is a free
+    parameter."""
+    if bg is None:
+        return None
+    sb = (bg >= 1.0 - 2e-3) | (bg <= 2e-3)
+    return sb.astype(np.float32) if sb.any() else None
+
+
+#: a refit with the joint scene estimate that moves a cross by more than this (px) from the
+#: first fit is not taken (it would be a different solution, not a better scene)
+REFIT_MAX_MOVE = 0.5
+#: position uncertainty (px) of the joint scene estimate's edges in the prior pixel weights
+#: ``1 / (1 + (delta |grad B| / noise)^2)`` (the opening's is 1 px)
+REFIT_DELTA = 0.6
+
+
+def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules):
+    """LSM again with the scene under each fitted cross estimated jointly with it.
+
+    ``passes`` times: the cross of the last fit (its blurred template ``T`` and its grey level
+    ``m``, by least squares over the pixels with ``T > 0.2`` against the opening's scene) is
+    held, the scene is the TV-regularised deconvolution of
+    :func:`softplot.marks.scene_tv.deconv_tv` (the first from the opening's estimate ``bg``,
+    the next from the last solution), its gradient gives the prior pixel weights, and LSM is
+    run from the last fit. Only a fit of the expected polarity ``sign`` with the
+    contrast-to-noise of ``rules`` is refitted: the joint scene must not turn a fit to scene
+    content into one that passes the acceptance tests. A cross whose refit
+    fails, changes polarity or moves by more than :data:`REFIT_MAX_MOVE` keeps its last fit.
+    Patches in the pixel system (``origin`` their [0, 0] pixels).
+    """
+    n = len(res.centre)
+    X = np.asarray(bg, np.float32).copy()  # the scene before the blur: the opening's to start
+    for _ in range(passes):
+        ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.s) & np.isfinite(res.noise)
+        ok &= np.all(np.isfinite(res.A.reshape(n, 4)), 1)
+        ok &= (np.sign(res.gain) == sign) & (res.cnr >= rules.min_cnr)
+        if not ok.any():
+            return res
+        idx = np.where(ok)[0]
+        A = res.A[idx]
+        T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
+        g = stack[idx]
+        b0 = bg[idx]
+        Tm = np.where(T > 0.2, T, 0.0)
+        level = ((Tm * (g - b0 * (1.0 - T))).sum((1, 2))
+                 / np.maximum((Tm * T).sum((1, 2)), 1e-9))
+        noise = np.maximum(res.noise[idx], 1e-4)
+        s_med = float(np.median(res.s[idx]))
+        B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
+                                       np.hypot(s_med, np.sqrt(1 / 12)))
+        wt = _edge_weights(B, noise, REFIT_DELTA)
+        if keep is not None:
+            wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
+        # (without fit_shape the fitted affine is A0's)
+        new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=s_med, init_err=0.3,
+                  fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
+                  clip=(0.0, 1.0))
+        move = np.hypot(*(new.centre - res.centre[idx]).T)
+        take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
+                & (move <= REFIT_MAX_MOVE))
+        res = _replace(res, idx[take], new, np.where(take)[0])
+    return res
+
+
+def _template(shape, origin, c, A, s, hw, batch=4):
+    """The blurred mark ``T`` (N, h, w) float32 of N patches (pixel system; centres ``c``,
+    affines ``A``, blurs ``s``), evaluated a few patches at a time: the template's
+    temporaries over whole chunks would double the fine stage's peak memory."""
+    n = len(c)
+    T = np.empty((n,) + tuple(hw), np.float32)
+    for a in range(0, n, batch):
+        b = slice(a, a + batch)
+        u, v = patch_frame(origin[b], c[b], A[b], (len(c[b]),) + tuple(hw))
+        ap = tuple(x[:, None, None] for x in aperture(A[b]))
+        T[b] = shape.evaluate(u, v, s[b, None, None], aperture=ap)[0]
+    return T
+
+
+def _edge_weights(B, noise, delta):
+    """Prior pixel weights ``1 / (1 + (delta |grad B| / noise)^2)`` of scene estimates ``B``
+    (N, h, w) (``|grad B|`` by Sobel / 8), as :func:`scene_background` gives its own."""
+    B = np.asarray(B, np.float32)
+    mag = np.stack([cv2.magnitude(cv2.Sobel(b, cv2.CV_32F, 1, 0, ksize=3),
+                                  cv2.Sobel(b, cv2.CV_32F, 0, 1, ksize=3)) for b in B])
+    mag *= (np.float32(delta / 8.0) / np.asarray(noise, np.float32))[:, None, None]
+    mag *= mag
+    mag += np.float32(1.0)
+    return np.reciprocal(mag)
+
+
+def _replace(res: LSMResult, at: np.ndarray, new: LSMResult, frm: np.ndarray) -> LSMResult:
+    """``res`` with the marks ``at`` taken from ``new``'s marks ``frm``."""
+    if at.size == 0:
+        return res
+    kw = {}
+    for f in fields(LSMResult):
+        a = getattr(res, f.name)
+        if f.name == "iterations":
+            kw[f.name] = max(a, new.iterations)
+            continue
+        a = a.copy()
+        b = getattr(new, f.name)
+        a[at] = b[frm]
+        kw[f.name] = a
+    return LSMResult(**kw)
 
 
 def _concat(results: list[LSMResult]) -> LSMResult:
@@ -246,7 +379,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
             max_shift: float | None = None, chunk: int = 20,
-            drop_part: int | None = None) -> Fine:
+            drop_part: int | None = None, scene_tv: int = 0) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
@@ -277,6 +410,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     drop_part : int, optional
         Crosses only: one half-arm (0: +u, 1: +v, 2: -u, 3: -v of the mark frame) gets weight
         0, so the mark is measured from the other three.
+    scene_tv : int
+        Crosses only: after the first fit, this many refits with the scene under each cross
+        estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
     """
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
@@ -285,7 +421,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     if n == 0:
         z = np.zeros(0)
         return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None,
-                    np.zeros((0, 2, 2)))
+                    np.zeros((0, 2, 2)), z)
     if anchor is None:
         anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
     anchor = np.asarray(anchor, float).reshape(-1, 2)
@@ -295,6 +431,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     cnr = np.full(n, np.nan)
     ok = np.zeros(n, bool)
     Afit = np.full((n, 2, 2), np.nan)
+    edge = np.full(n, np.nan)
     reason = [""] * n
     fast = min(init_err, 0.6)
     passes = [(np.arange(n), fast)]
@@ -309,14 +446,17 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
 
         def run(k, starts=starts, ie=ie):
             return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part)
+                        drop_part, scene_tv, rules)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        res = _concat(thread_map(run, np.array_split(idx, -(-idx.size // max(1, int(chunk))))))
+        out = thread_map(run, np.array_split(idx, -(-idx.size // max(1, int(chunk)))))
+        res = _concat([o[0] for o in out])
+        if p_i == 0:
+            edge[idx] = np.concatenate([o[1] for o in out])
         good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx], max_shift)
         for j, i in enumerate(idx):
             if p_i == 0 or good[j]:
@@ -326,4 +466,4 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
-    return Fine(xy, cov, score, cnr, ok, reason, None, Afit)
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge)

@@ -69,6 +69,10 @@ class Detection:
     residual : (N, 2) float
         Measured minus model (px), NaN when not measured.
     warnings : list of str
+    scene : str
+        The scene model under the crosses: "opening" (the grey opening's estimate) or "joint"
+        (also estimated jointly with each cross, :mod:`softplot.marks.scene_tv`); fiducials
+        always "opening".
     """
 
     image: str
@@ -95,6 +99,7 @@ class Detection:
     warnings: list = field(default_factory=list)
     dpi_source: str = "given"
     timings: dict = field(default_factory=dict)
+    scene: str = "opening"
 
     @property
     def measured(self) -> np.ndarray:
@@ -145,6 +150,7 @@ class Detection:
             "dpi": _num(self.dpi, 3),
             "dpi_source": self.dpi_source,
             "polarity": self.polarity,
+            "scene": self.scene,
             "marks": marks,
             "transform": self.transform,
             "rms_px": _num(self.rms_px, 5),

@@ -1,0 +1,262 @@
+"""The scene under a fitted cross, estimated jointly with it: TV-regularised deconvolution.
+
+The grey opening of :func:`softplot.marks.measure.scene_background` removes the bars with a disc
+and fills the footprint from the scene around it. Where a scene edge runs under or along a bar,
+or crosses it obliquely, the disc puts the edge at the wrong place inside the footprint, and the
+error, antisymmetric across the bar, shifts the centre (docs/accuracy.md, "Open gap: busy
+scenes"). Here the fitted cross tells which pixels see the scene and how much of it: LSM's
+image model is ``g = B (1 - T) + m T`` with ``B = G * X`` the optically blurred scene ``X``
+(``G`` the scanner's Gaussian of the edge spread ``s_e``). With the cross held (``T`` and the
+mark level ``m`` from a first fit), the scene is the minimiser of::
+
+    1/2 sum_p ((1 - T) (G * X) + m T - g)^2 + mu TV(X)
+
+over the whole patch: the data term is exactly LSM's residual; the total variation of the
+unblurred scene is the prior of a scene of sharp-edged areas (buildings, fields, roads). Where
+the bar hides the scene (``T`` near 1) the prior continues the edges seen around it by the
+shortest way, straight across the bar; in the bar's blur tails the data put the edges where they
+are; TV's threshold keeps a small misfit of the cross from being explained as scene (a weak
+edge costs more total variation than it saves in residual). ``mu`` is a multiple of the patch's
+noise. The problem is solved by the primal-dual method of Chambolle and Pock (2011) from the
+opening's estimate, a fixed number of iterations.
+
+All arrays are patches ``(N, h, w)`` in the pixel system of the scan (row = y, column = x), grey
+units of :mod:`softplot.marks.lsm`. The compiled kernel (numba, :data:`kernels.AVAILABLE`) and the
+NumPy path give the same values to float32 rounding
+(``tests/test_marks_units.py::test_scene_tv_kernel_matches_numpy``).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from softplot.marks import kernels
+
+__all__ = ["gauss_taps", "deconv_tv", "ITERATIONS", "MU"]
+
+#: iterations of the primal-dual solver (from the opening's estimate; more change the fitted
+#: centres by far less than their standard deviation)
+ITERATIONS = 20
+#: TV weight in units of the patch's noise
+MU = 1.0
+#: steps of the primal-dual solver: tau * sigma * ||K||^2 <= 1 with ||K||^2 <= 8 + 1
+TAU = SIGMA = 1.0 / 3.0
+
+
+def gauss_taps(s_e: float) -> np.ndarray:
+    """Normalised taps of a sampled Gaussian of sigma ``s_e`` px, to 3 sigma (float32)."""
+    r = max(1, int(np.ceil(3.0 * float(s_e))))
+    x = np.arange(-r, r + 1, dtype=float)
+    k = np.exp(-0.5 * (x / float(s_e)) ** 2)
+    return (k / k.sum()).astype(np.float32)
+
+
+# -- compiled kernel ---------------------------------------------------------------------------
+
+njit = kernels.njit
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _blur(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
+    # separable Gaussian, edges replicated (``row``: a buffer of w + 2 r)
+    for i in range(h):
+        for j in range(r):
+            row[j] = src[i, 0]
+            row[w + r + j] = src[i, w - 1]
+        for j in range(w):
+            row[r + j] = src[i, j]
+        for j in range(w):
+            acc = np.float32(0.0)
+            for t in range(2 * r + 1):
+                acc += k[t] * row[j + t]
+            tmp[i, j] = acc
+    for i in range(h):
+        for j in range(w):
+            dst[i, j] = 0.0
+        for t in range(-r, r + 1):
+            ii = min(max(i + t, 0), h - 1)
+            kt = k[t + r]
+            for j in range(w):
+                dst[i, j] += kt * tmp[ii, j]
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _project(a, b, il):  # pragma: no cover - compiled
+    nn = max(np.float32(1.0), np.sqrt(a * a + b * b) * il)
+    return a / nn, b / nn
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover - compiled
+    n, h, w = g.shape
+    r = (k.shape[0] - 1) // 2
+    one = np.float32(1.0)
+    isg = one / (one + sig)
+    X = np.empty((h, w), np.float32)
+    Xb = np.empty((h, w), np.float32)
+    px = np.empty((h, w), np.float32)
+    py = np.empty((h, w), np.float32)
+    y2 = np.empty((h, w), np.float32)
+    t1 = np.empty((h, w), np.float32)
+    t2 = np.empty((h, w), np.float32)
+    tmp = np.empty((h, w), np.float32)
+    W = np.empty((h, w), np.float32)
+    f = np.empty((h, w), np.float32)
+    row = np.empty(w + 2 * r, np.float32)
+    for q in range(n):
+        il = one / mu[q]
+        for i in range(h):
+            for j in range(w):
+                X[i, j] = B0[q, i, j]
+                Xb[i, j] = B0[q, i, j]
+                px[i, j] = 0.0
+                py[i, j] = 0.0
+                y2[i, j] = 0.0
+                W[i, j] = one - T[q, i, j]
+                f[i, j] = sig * (g[q, i, j] - m[q] * T[q, i, j])
+        for _ in range(iters):
+            # dual step of the TV term: ascent on grad X (forward differences, 0 across the
+            # far edges), projection onto |p| <= mu
+            for i in range(h - 1):
+                for j in range(w - 1):
+                    px[i, j], py[i, j] = _project(px[i, j] + sig * (Xb[i, j + 1] - Xb[i, j]),
+                                                  py[i, j] + sig * (Xb[i + 1, j] - Xb[i, j]),
+                                                  il)
+                px[i, w - 1], py[i, w - 1] = _project(
+                    px[i, w - 1], py[i, w - 1] + sig * (Xb[i + 1, w - 1] - Xb[i, w - 1]), il)
+            for j in range(w - 1):
+                px[h - 1, j], py[h - 1, j] = _project(
+                    px[h - 1, j] + sig * (Xb[h - 1, j + 1] - Xb[h - 1, j]), py[h - 1, j], il)
+            px[h - 1, w - 1], py[h - 1, w - 1] = _project(px[h - 1, w - 1], py[h - 1, w - 1], il)
+            # dual step of the data term (prox of the conjugate of 1/2 |z - f|^2)
+            _blur(Xb, t2, tmp, row, k, r, h, w)
+            for i in range(h):
+                for j in range(w):
+                    y2[i, j] = (y2[i, j] + sig * W[i, j] * t2[i, j] - f[i, j]) * isg
+                    t1[i, j] = W[i, j] * y2[i, j]
+            _blur(t1, t2, tmp, row, k, r, h, w)
+            # primal step: X - tau K^T y = X + tau (div p - G (W y2)), then extrapolation
+            for i in range(h):
+                for j in range(w):
+                    d = -t2[i, j]
+                    if j < w - 1:
+                        d += px[i, j]
+                    if j > 0:
+                        d -= px[i, j - 1]
+                    if i < h - 1:
+                        d += py[i, j]
+                    if i > 0:
+                        d -= py[i - 1, j]
+                    xn = X[i, j] + tau * d
+                    Xb[i, j] = np.float32(2.0) * xn - X[i, j]
+                    X[i, j] = xn
+        _blur(X, t2, tmp, row, k, r, h, w)
+        for i in range(h):
+            for j in range(w):
+                out[q, i, j] = t2[i, j]
+                xout[q, i, j] = X[i, j]
+
+
+# -- NumPy path ----------------------------------------------------------------------------------
+
+
+def _blur_np(a: np.ndarray, k: np.ndarray) -> np.ndarray:
+    r = (len(k) - 1) // 2
+    p = np.pad(a, ((0, 0), (0, 0), (r, r)), mode="edge")
+    t = sum(k[i] * p[:, :, i : i + a.shape[2]] for i in range(len(k)))
+    p = np.pad(t, ((0, 0), (r, r), (0, 0)), mode="edge")
+    return sum(k[i] * p[:, i : i + a.shape[1], :] for i in range(len(k))).astype(np.float32)
+
+
+def _grad(X):
+    gx = np.zeros_like(X)
+    gy = np.zeros_like(X)
+    gx[:, :, :-1] = X[:, :, 1:] - X[:, :, :-1]
+    gy[:, :-1, :] = X[:, 1:, :] - X[:, :-1, :]
+    return gx, gy
+
+
+def _div(px, py):
+    d = np.zeros_like(px)
+    d[:, :, :-1] += px[:, :, :-1]
+    d[:, :, 1:] -= px[:, :, :-1]
+    d[:, :-1, :] += py[:, :-1, :]
+    d[:, 1:, :] -= py[:, :-1, :]
+    return d
+
+
+def _numpy(g, T, m, B0, mu, k, iters):
+    tau, sig = np.float32(TAU), np.float32(SIGMA)
+    W = 1.0 - T
+    f = sig * (g - m[:, None, None] * T)
+    X = B0.copy()
+    Xb = X.copy()
+    px = np.zeros_like(X)
+    py = np.zeros_like(X)
+    y2 = np.zeros_like(X)
+    il = (1.0 / mu)[:, None, None].astype(np.float32)
+    for _ in range(iters):
+        gx, gy = _grad(Xb)
+        px += sig * gx
+        py += sig * gy
+        nn = np.maximum(1.0, np.sqrt(px * px + py * py) * il)
+        px /= nn
+        py /= nn
+        y2 = (y2 + sig * W * _blur_np(Xb, k) - f) / (1.0 + sig)
+        Xn = X + tau * (_div(px, py) - _blur_np(W * y2, k))
+        Xb = 2.0 * Xn - X
+        X = Xn
+    return _blur_np(X, k), X.astype(np.float32)
+
+
+def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
+              mu: np.ndarray, s_e: float, iters: int | None = None,
+              compiled: bool | None = None) -> np.ndarray:
+    """The blurred scene ``B = G * X`` under N fitted marks (see the module docstring).
+
+    Parameters
+    ----------
+    g : (N, h, w) float
+        Grey values of the patches (pixel system; finite everywhere).
+    T : (N, h, w) float
+        The fitted blurred mark of each patch (1 on the mark, 0 off it).
+    level : (N,) float
+        Each mark's fitted grey level.
+    B0 : (N, h, w) float
+        Starting estimate of the scene ``X`` (the opening's, or the ``X`` of a previous call).
+    mu : (N,) float
+        TV weight of each patch (grey units; a multiple of its noise).
+    s_e : float
+        Edge spread of the scanner (px): Gaussian blur and pixel box.
+    iters : int, optional
+        Iterations of the solver (default :data:`ITERATIONS`).
+    compiled : bool, optional
+        Use the numba kernel (default: when it is available).
+
+    Returns
+    -------
+    B, X : (N, h, w) float32
+        The blurred scene (what LSM's model uses) and the scene before the blur.
+    """
+    g = np.ascontiguousarray(g, np.float32)
+    T = np.ascontiguousarray(T, np.float32)
+    B0 = np.ascontiguousarray(B0, np.float32)
+    m = np.ascontiguousarray(level, np.float32).reshape(-1)
+    mu = np.ascontiguousarray(np.maximum(mu, 1e-6), np.float32).reshape(-1)
+    k = gauss_taps(s_e)
+    iters = ITERATIONS if iters is None else iters
+    if compiled is None:
+        compiled = kernels.AVAILABLE and kernels.ready()
+    if not compiled:
+        return _numpy(g, T, m, B0, mu, k, int(iters))
+    out = np.empty_like(g)
+    xout = np.empty_like(g)
+    try:
+        _kernel(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA), out, xout)
+    except Exception as exc:  # noqa: BLE001 - numba cannot compile it here: the NumPy path
+        warnings.warn(f"softplot: compiled scene kernel unavailable ({type(exc).__name__}: "
+                      f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)
+        return _numpy(g, T, m, B0, mu, k, int(iters))
+    return out, xout
