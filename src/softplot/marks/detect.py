@@ -14,8 +14,8 @@ Pipeline for a reseau camera (pixel system throughout, film mm for the certifica
    in the NCC map, and least-squares template matching at full resolution
    (:mod:`softplot.marks.lsm`) with robust weights, against the scene under each cross as the
    grey opening estimates it (:func:`softplot.marks.measure.scene_background`); where the
-   scene has sharp edges at the crosses (``scene="auto"``, :func:`_busy_scene`) the crosses
-   are measured again with the scene estimated jointly with each cross
+   scene has sharp edges at the crosses (``scene="auto"``, :func:`_busy_scene`) the fits are
+   refitted with the scene estimated jointly with each cross
    (:mod:`softplot.marks.scene_tv`: TV-regularised deconvolution with the fitted cross held,
    then LSM again, twice);
 5. acceptance tests (contrast, correlation, shape, support of each arm): a mark that fails is
@@ -383,14 +383,12 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
     init_err = max(0.75, 0.5 * f + 0.25)
     idx = np.where(inside)[0]
-    tv = JOINT_PASSES if scene == "joint" else 0
+    # "auto": the joint scene where the first pass sees sharp scene edges at the crosses
     fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
-                   max_shift=radius_ov * f + 1.0, scene_tv=tv)
-    if scene == "auto" and _busy_scene(fine.edge[fine.ok]):
-        # sharp scene edges at the crosses: all of them measured again with the joint scene
-        tv = JOINT_PASSES
-        fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules,
-                       anchor=pred[idx], max_shift=radius_ov * f + 1.0, scene_tv=tv)
+                   max_shift=radius_ov * f + 1.0,
+                   scene_tv=JOINT_PASSES if scene == "joint" else 0,
+                   auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=_busy_scene)
+    tv = fine.scene_tv
     _shape_from_neighbours(sc, shape, film[idx], c0[idx], pred[idx], fine, s0, init_err, sign,
                            rules, radius_ov * f + 1.0, ppm, scene_tv=tv)
     timings["lsm"] = time.perf_counter() - t0

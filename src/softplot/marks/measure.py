@@ -93,6 +93,8 @@ class Fine:
     #: crosses of the first pass: the sharpest scene edge in the footprint over the contrast
     #: (:func:`_scene_edges`; NaN where not computed)
     edge: np.ndarray | None = None
+    #: joint-scene passes used (:func:`_refit_scene`; 0: the opening's scene)
+    scene_tv: int = 0
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -174,10 +176,12 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
-         scene_tv=0, rules=None):
+         scene_tv=0, rules=None, first=None):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
-    passes of the joint scene estimate of :func:`_refit_scene` after the first fit)."""
+    passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
+    ``first``: that first fit, when it was made already by a call with the same arguments).
+    Returns ``(LSMResult, edge)`` (``edge``: :func:`_scene_edges`, NaN for other marks)."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
@@ -190,8 +194,9 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         u, v = patch_frame(origin, c0, A, stack.shape)
         keep = _parts(shape, u, v) != drop_part
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
-    res = lsm(stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-              background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
+    res = first if first is not None else lsm(
+        stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
+        background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
     edge = np.full(len(c0), np.nan)
     if scene and shape.kind == "cross" and np.isfinite(stack).all():
         edge = _scene_edges(bg, origin, c0, A0, shape, s0, res.gain)
@@ -290,12 +295,15 @@ def _template(shape, origin, c, A, s, hw, batch=4):
     affines ``A``, blurs ``s``), evaluated a few patches at a time: the template's
     temporaries over whole chunks would double the fine stage's peak memory."""
     n = len(c)
-    T = np.empty((n,) + tuple(hw), np.float32)
+    T = np.zeros((n,) + tuple(hw), np.float32)
     for a in range(0, n, batch):
         b = slice(a, a + batch)
         u, v = patch_frame(origin[b], c[b], A[b], (len(c[b]),) + tuple(hw))
-        ap = tuple(x[:, None, None] for x in aperture(A[b]))
-        T[b] = shape.evaluate(u, v, s[b, None, None], aperture=ap)[0]
+        sb = np.broadcast_to(np.asarray(s[b], np.float32)[:, None, None], u.shape)
+        # beyond 5 blur sigmas (and a pixel) of the bars the template is below 1e-6: left 0
+        near = support_mask(shape, u, v, 5.0 * float(np.max(s[b])) + 1.0)
+        ap = tuple(np.broadcast_to(x[:, None, None], u.shape)[near] for x in aperture(A[b]))
+        T[b][near] = shape.evaluate(u[near], v[near], sb[near], aperture=ap)[0]
     return T
 
 
@@ -379,7 +387,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
             max_shift: float | None = None, chunk: int = 20,
-            drop_part: int | None = None, scene_tv: int = 0) -> Fine:
+            drop_part: int | None = None, scene_tv: int = 0, auto_tv: int = 0,
+            busy=None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
@@ -413,6 +422,11 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     scene_tv : int
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
+    auto_tv, busy : int and callable, optional
+        With ``scene_tv`` 0: when ``busy(edge)`` is true of the :func:`_scene_edges` figures
+        of the marks the first pass accepted, the first pass is refitted with ``auto_tv``
+        joint-scene passes (its fits reused), and so is the retry. ``Fine.scene_tv`` tells
+        which was used.
     """
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
@@ -444,20 +458,35 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # been a scene feature
         starts = c0 if p_i == 0 else anchor
 
-        def run(k, starts=starts, ie=ie):
+        def run(k, starts=starts, ie=ie, tv=scene_tv):
             return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part, scene_tv, rules)
+                        drop_part, tv, rules)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        out = thread_map(run, np.array_split(idx, -(-idx.size // max(1, int(chunk)))))
+        parts = np.array_split(idx, -(-idx.size // max(1, int(chunk))))
+        out = thread_map(run, parts)
         res = _concat([o[0] for o in out])
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
         good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx], max_shift)
+        if p_i == 0 and not scene_tv and auto_tv and busy is not None and busy(edge[idx][good]):
+            # the scene has sharp edges at the marks: the same fits refitted with the joint
+            # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
+            scene_tv = auto_tv
+
+            def rerun(a, starts=starts, ie=ie, tv=scene_tv):
+                k, first = a
+                return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
+                            drop_part, tv, rules, first)[0]
+
+            res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
+                                                     strict=True))))
+            good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
+                                max_shift)
         for j, i in enumerate(idx):
             if p_i == 0 or good[j]:
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
@@ -466,4 +495,4 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
-    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge)
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv)
