@@ -110,13 +110,14 @@ class Detection:
         return len(self.name)
 
     def summary(self) -> str:
-        """One line: counts by status, rms, polarity, dpi."""
+        """One line: counts by status, rms, polarity, dpi (and the joint scene model, if used)."""
         m = int(self.measured.sum())
         miss = sum(s == "missing" for s in self.status)
         rej = sum(s == "rejected" for s in self.status)
         return (f"{self.image}: {m}/{len(self)} marks measured, {miss} missing, {rej} rejected; "
                 f"rms {self.rms_px:.3f} px against the {self.transform.get('kind', '?')} model; "
-                f"{self.polarity}, {self.dpi:.1f} dpi ({self.dpi_source})")
+                f"{self.polarity}, {self.dpi:.1f} dpi ({self.dpi_source})"
+                + ("; scene estimated jointly with the crosses" if self.scene == "joint" else ""))
 
     def to_json(self) -> dict:
         """The issue-3 JSON document (a dict ready for ``json.dump``)."""
