@@ -251,8 +251,10 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     :func:`softplot.marks.scene_tv.deconv_tv` (the first from the opening's estimate ``bg``,
     the next from the last solution), its gradient gives the prior pixel weights, and LSM is
     run from the last fit. Only a fit of the expected polarity ``sign`` with the
-    contrast-to-noise of ``rules`` is refitted: the joint scene must not turn a fit to scene
-    content into one that passes the acceptance tests. A cross whose refit
+    contrast-to-noise of ``rules`` is refitted. (The joint scene can make a fit to scene
+    content pass the acceptance tests: on a negative read as a positive, 25 of 121 did, and
+    :func:`softplot.marks.detect.detect` refuses such a scan because its measured crosses lie
+    off any grid.) A cross whose refit
     fails, changes polarity or moves by more than :data:`REFIT_MAX_MOVE` keeps its last fit.
     Patches in the pixel system (``origin`` their [0, 0] pixels).
     """
