@@ -96,13 +96,15 @@ def test_auto_takes_the_joint_scene_where_the_scene_has_sharp_edges(kind, model)
     assert det.to_json()["scene"] == model
 
 
-def test_wrong_polarity_over_a_busy_scene_is_no_reseau():
-    """A negative read as a positive over a busy scene: the fits to scene content that pass
-    the acceptance tests do not lie on a grid, and the scan is refused (one-line error)."""
+@pytest.mark.parametrize("kind", ["busy", "texture"])
+def test_wrong_polarity_over_a_busy_scene_is_no_reseau(kind):
+    """A negative read as a positive: over a busy scene (any model) or with the joint scene
+    (any scene) some fits to scene content pass the acceptance tests, but they do not lie on
+    a grid, and the scan is refused (one-line error)."""
     img, truth = render_scan("rollei-6006", ScanSpec(dpi=650, polarity="negative",
-                                                     scene="busy"), 3)
+                                                     scene=kind), 3)
     sc = Scan.from_array(img, dpi=650)
-    for scene in ("auto", "joint"):
+    for scene in ("auto", "joint", "opening"):
         with pytest.raises(DetectionError, match="no reseau found") as exc:
             detect(sc, "rollei-6006", polarity="positive", scene=scene)
         assert "\n" not in str(exc.value)
