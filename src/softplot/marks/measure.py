@@ -102,8 +102,8 @@ def _angle(A: np.ndarray) -> np.ndarray:
 
 
 def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
-                     delta: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """The scene under thin marks, and how far to trust it, for each patch.
+                     delta: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The scene under thin marks, how far to trust it, and its gradient, for each patch.
 
     A grey opening (bright marks, ``sign > 0``) or closing (dark marks) with a disc wider than
     the blurred stroke (``width + 5 s + 1`` px) removes the cross bars or ring and keeps every
@@ -115,7 +115,8 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     (``noise``: the patch's MAD of data minus estimate): scene edges along an arm then carry
     little weight instead of pulling the centre. Filled marks (dots) have no stroke to
     remove: the patch median and unit weights are returned. All patches are filtered at once
-    (stacked into one image with a replicated border between them).
+    (stacked into one image with a replicated border between them). Returns ``(S, weights,
+    |grad S|)`` (px^-1, Sobel / 8; None for dots).
     """
     n, h, w = stack.shape
     fin = np.isfinite(stack)
@@ -130,7 +131,7 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
         q = np.asarray(stack, np.float32)
     if shape.kind == "dot" or n == 0:
         return np.broadcast_to(med[:, None, None], stack.shape).astype(np.float32), \
-            np.ones_like(stack)
+            np.ones_like(stack), None
     d = int(np.ceil(shape.width + 5.0 * s + 1.0)) | 1
     # rows of replicated border between the stacked patches: the reach of the closing (twice
     # the disc's radius), the wide mean below and the Sobel, so that no patch's estimate sees
@@ -165,29 +166,37 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3)
     g = cv2.magnitude(gx, gy)
     del gx, gy
+    g *= np.float32(1.0 / 8.0)  # |grad S| in grey units per px
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     g = g.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
-    # prior weights 1 / (1 + (delta |grad S| / noise)^2), |grad S| = |Sobel| / 8
-    wts = g * (np.float32(delta / 8.0) / nz[:, None, None])
+    return np.ascontiguousarray(S), _prior_weights(g, nz, delta), g
+
+
+def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndarray:
+    """Prior pixel weights ``1 / (1 + (delta |grad S| / noise)^2)`` of a scene estimate whose
+    edges may be off by about ``delta`` px: ``grad`` (N, h, w) its gradient magnitude (grey
+    units per px), ``noise`` (N,) each patch's noise."""
+    wts = grad * (np.float32(delta) / np.asarray(noise, np.float32))[:, None, None]
     wts *= wts
     wts += np.float32(1.0)
     np.reciprocal(wts, out=wts)
-    return np.ascontiguousarray(S), wts
+    return wts
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
-         scene_tv=0, rules=None, first=None):
+         scene_tv=0, rules=None, first=None, edges=False):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
     ``first``: that first fit, when it was made already by a call with the same arguments).
-    Returns ``(LSMResult, edge)`` (``edge``: :func:`_scene_edges`, NaN for other marks)."""
+    Returns ``(LSMResult, edge)`` (``edge``: :func:`_scene_edges` with ``edges``, else and for
+    other marks NaN)."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
-    bg, wt = scene_background(stack, shape, s0, sign) if scene else (None, None)
+    bg, wt, grad = scene_background(stack, shape, s0, sign) if scene else (None, None, None)
     keep = None
     if drop_part is not None and shape.kind == "cross":
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
@@ -199,27 +208,25 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
     edge = np.full(len(c0), np.nan)
     if scene and shape.kind == "cross" and np.isfinite(stack).all():
-        edge = _scene_edges(bg, origin, c0, A0, shape, s0, res.gain)
+        if edges:
+            edge = _scene_edges(grad, origin, c0, A0, shape, s0, res.gain)
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
                                rules or AcceptRules())
     return res, edge
 
 
-def _scene_edges(bg, origin, c0, A0, shape, s0, gain):
-    """The sharpest scene edge in each cross's footprint: the largest gradient of the scene
-    estimate ``bg`` (px^-1, Sobel / 8) within ``2.5 s0`` px of the drawn bars, over the cross's
-    contrast ``|gain|``. Smooth texture stays below 0.1 (the sweep's textured renders: at
-    most 0.09); the blocks, roads and discs of a busy scene reach 0.2-0.5. (The patches are
-    filtered stacked; the seams between them lie outside every footprint.)"""
-    n, h, w = bg.shape
-    flat = np.ascontiguousarray(bg, np.float32).reshape(n * h, w)
-    grad = cv2.magnitude(cv2.Sobel(flat, cv2.CV_32F, 1, 0, ksize=3),
-                         cv2.Sobel(flat, cv2.CV_32F, 0, 1, ksize=3)).reshape(n, h, w)
+def _scene_edges(grad, origin, c0, A0, shape, s0, gain):
+    """The sharpest scene edge in each cross's footprint: the largest gradient ``grad`` of the
+    scene estimate (grey units per px, :func:`scene_background`) within ``2.5 s0`` px of the
+    drawn bars, over the cross's contrast ``|gain|``. Smooth texture stays below 0.1 (the
+    sweep's textured renders: at most 0.09); the blocks, roads and discs of a busy scene reach
+    0.2-0.5."""
+    n = grad.shape[0]
     A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
-    u, v = patch_frame(origin, c0, A, bg.shape)
+    u, v = patch_frame(origin, c0, A, grad.shape)
     near = support_mask(shape, u, v, 2.5 * s0)
-    top = np.where(near, grad, 0.0).reshape(n, -1).max(1) / 8.0
+    top = np.where(near, grad, 0.0).reshape(n, -1).max(1)
     return top / np.maximum(np.abs(gain), 1e-6)
 
 
@@ -315,15 +322,13 @@ def _template(shape, origin, c, A, s, hw, batch=4):
 
 
 def _edge_weights(B, noise, delta):
-    """Prior pixel weights ``1 / (1 + (delta |grad B| / noise)^2)`` of scene estimates ``B``
-    (N, h, w) (``|grad B|`` by Sobel / 8), as :func:`scene_background` gives its own."""
+    """:func:`_prior_weights` of scene estimates ``B`` (N, h, w), ``|grad B|`` by Sobel / 8
+    within each patch, as :func:`scene_background` gives its own."""
     B = np.asarray(B, np.float32)
     mag = np.stack([cv2.magnitude(cv2.Sobel(b, cv2.CV_32F, 1, 0, ksize=3),
                                   cv2.Sobel(b, cv2.CV_32F, 0, 1, ksize=3)) for b in B])
-    mag *= (np.float32(delta / 8.0) / np.asarray(noise, np.float32))[:, None, None]
-    mag *= mag
-    mag += np.float32(1.0)
-    return np.reciprocal(mag)
+    mag *= np.float32(1.0 / 8.0)
+    return _prior_weights(mag, noise, delta)
 
 
 def _replace(res: LSMResult, at: np.ndarray, new: LSMResult, frm: np.ndarray) -> LSMResult:
@@ -465,9 +470,12 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # been a scene feature
         starts = c0 if p_i == 0 else anchor
 
-        def run(k, starts=starts, ie=ie, tv=scene_tv):
+        # the scene-edge figures only where they decide: the first pass of an "auto" call
+        want = p_i == 0 and not scene_tv and bool(auto_tv) and busy is not None
+
+        def run(k, starts=starts, ie=ie, tv=scene_tv, want=want):
             return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part, tv, rules)
+                        drop_part, tv, rules, edges=want)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
@@ -480,7 +488,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
         good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx], max_shift)
-        if p_i == 0 and not scene_tv and auto_tv and busy is not None and busy(edge[idx][good]):
+        if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
             scene_tv = auto_tv
