@@ -79,6 +79,8 @@ class LSMResult:
     iterations : int
     npix : (N,) int
         Pixels used.
+    level : (N,) float
+        The fitted grey level of the mark itself (``a + b`` of the model).
     """
 
     centre: np.ndarray
@@ -94,6 +96,7 @@ class LSMResult:
     converged: np.ndarray
     iterations: int
     npix: np.ndarray
+    level: np.ndarray
 
     @property
     def sigma(self) -> np.ndarray:
@@ -615,4 +618,5 @@ def lsm(
         converged=converged,
         iterations=it,
         npix=npix,
+        level=p[:, 7] + p[:, 8],
     )

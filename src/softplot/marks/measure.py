@@ -252,9 +252,8 @@ REFIT_DELTA = 0.6
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules):
     """LSM again with the scene under each fitted cross estimated jointly with it.
 
-    ``passes`` times: the cross of the last fit (its blurred template ``T`` and its grey level
-    ``m``, by least squares over the pixels with ``T > 0.2`` against the last scene estimate,
-    the opening's at first) is held, the scene is the TV-regularised deconvolution (TV weight
+    ``passes`` times: the cross of the last fit (its blurred template ``T`` and its fitted grey
+    level ``m``) is held, the scene is the TV-regularised deconvolution (TV weight
     :data:`softplot.marks.scene_tv.MU` x the median noise of the set) of
     :func:`softplot.marks.scene_tv.deconv_tv` (the first from the opening's estimate ``bg``,
     the next from the last solution), its gradient gives the prior pixel weights, and LSM is
@@ -268,7 +267,6 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     """
     n = len(res.centre)
     X = np.asarray(bg, np.float32).copy()  # the scene before the blur: the opening's to start
-    B_last = np.asarray(bg, np.float32).copy()  # the last blurred scene estimate
     for _ in range(passes):
         ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.s) & np.isfinite(res.noise)
         ok &= np.all(np.isfinite(res.A.reshape(n, 4)), 1)
@@ -279,17 +277,13 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         A = res.A[idx]
         T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
         g = stack[idx]
-        b0 = B_last[idx]  # the level against the last scene estimate
-        Tm = np.where(T > 0.2, T, 0.0)
-        level = ((Tm * (g - b0 * (1.0 - T))).sum((1, 2))
-                 / np.maximum((Tm * T).sum((1, 2)), 1e-9))
+        level = res.level[idx]
         # the TV weight from the set's median noise: a patch's own residual MAD grows with the
         # scene's misfit, and TV would flatten the very scenes it is for
         noise = np.full(len(idx), max(float(np.median(res.noise[idx])), 1e-4))
         s_med = float(np.median(res.s[idx]))
         B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
                                        np.hypot(s_med, np.sqrt(1 / 12)))
-        B_last[idx] = B
         wt = _edge_weights(B, noise, REFIT_DELTA)
         if keep is not None:
             wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
