@@ -475,7 +475,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
 def _busy_scene(edge: np.ndarray) -> bool:
     """Whether the scene has sharp edges at the crosses: at least :data:`BUSY_COUNT` (accepted)
     crosses whose footprint holds a scene edge steeper than :data:`BUSY_EDGE` times their contrast
-    per px (:func:`softplot.marks.measure._scene_edges`)."""
+    per px (:func:`softplot.marks.measure._footprint_gradient`)."""
     e = np.asarray(edge, float)
     return int(np.sum(np.isfinite(e) & (e > BUSY_EDGE))) >= BUSY_COUNT
 

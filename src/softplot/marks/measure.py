@@ -91,7 +91,7 @@ class Fine:
     lsm: LSMResult | None
     A: np.ndarray | None = None
     #: crosses of the first pass: the sharpest scene edge in the footprint over the contrast
-    #: (:func:`_scene_edges`; NaN where not computed)
+    #: (:func:`_footprint_gradient`; NaN where not computed)
     edge: np.ndarray | None = None
     #: joint-scene passes used (:func:`_refit_scene`; 0: the opening's scene)
     scene_tv: int = 0
@@ -189,8 +189,8 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
     ``first``: that first fit, when it was made already by a call with the same arguments).
-    Returns ``(LSMResult, edge)`` (``edge``: :func:`_scene_edges` with ``edges``, else and for
-    other marks NaN)."""
+    Returns ``(LSMResult, edge)``; ``edge``, with ``edges``: :func:`_footprint_gradient` over
+    the fitted contrast, else (and for other marks) NaN."""
     sv = np.linalg.svd(A0, compute_uv=False)
     grow = float(1.0 / max(sv.min(), 1e-3))
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
@@ -203,31 +203,34 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         u, v = patch_frame(origin, c0, A, stack.shape)
         keep = _parts(shape, u, v) != drop_part
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
+    cross = scene and shape.kind == "cross" and bool(np.isfinite(stack).all())
+    top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
+    del grad  # not held through LSM (the fine stage's peak memory)
     res = first if first is not None else lsm(
         stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
         background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
     edge = np.full(len(c0), np.nan)
-    if scene and shape.kind == "cross" and np.isfinite(stack).all():
-        if edges:
-            edge = _scene_edges(grad, origin, c0, A0, shape, s0, res.gain)
+    if cross:
+        if top is not None:
+            # the sharpest scene edge in the footprint over the cross's contrast
+            edge = top / np.maximum(np.abs(res.gain), 1e-6)
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
                                rules or AcceptRules())
     return res, edge
 
 
-def _scene_edges(grad, origin, c0, A0, shape, s0, gain):
+def _footprint_gradient(grad, origin, c0, A0, shape, s0):
     """The sharpest scene edge in each cross's footprint: the largest gradient ``grad`` of the
     scene estimate (grey units per px, :func:`scene_background`) within ``2.5 s0`` px of the
-    drawn bars, over the cross's contrast ``|gain|``. Smooth texture stays below 0.1 (the
-    sweep's textured renders: at most 0.09); the blocks, roads and discs of a busy scene reach
-    0.2-0.5."""
+    drawn bars. Over the cross's contrast it is the scene-edge figure of :func:`_fit`: smooth
+    texture stays below 0.1 (the sweep's textured renders: at most 0.09); the blocks, roads
+    and discs of a busy scene reach 0.2-0.5."""
     n = grad.shape[0]
     A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
     u, v = patch_frame(origin, c0, A, grad.shape)
     near = support_mask(shape, u, v, 2.5 * s0)
-    top = np.where(near, grad, 0.0).reshape(n, -1).max(1)
-    return top / np.maximum(np.abs(gain), 1e-6)
+    return np.where(near, grad, 0.0).reshape(n, -1).max(1)
 
 
 def _saturated(bg):
@@ -429,7 +432,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
     auto_tv, busy : int and callable, optional
-        With ``scene_tv`` 0: when ``busy(edge)`` is true of the :func:`_scene_edges` figures
+        With ``scene_tv`` 0: when ``busy(edge)`` is true of the :func:`_footprint_gradient` figures
         of the marks the first pass accepted, the first pass is refitted with ``auto_tv``
         joint-scene passes (its fits reused), and so is the retry. ``Fine.scene_tv`` tells
         which was used.
