@@ -115,6 +115,61 @@ def test_streaming_many_moves(sim, streaming):
         assert len(moves) == 40  # nothing lost or mangled in the 128-byte buffer
 
 
+def test_stale_power_up_banner_keeps_replies_in_step(sim):
+    """The power-up banner still in the line when the port opens: soft_reset takes it for the
+    reset's, writes ``$I``, then the reset's own banner arrives. The controller answers that
+    ``$I`` (it read the 0x18 first); were it sent again, every later ``ok`` would be taken for
+    the line before it and char-count streaming would overfill the 128-byte buffer."""
+    from softplot.motors.simulator import BANNER
+
+    reset, line = sim._reset, sim._line
+    seen = {"reset": 0, "$I": 0}
+
+    def late_reset():
+        if not seen["reset"]:
+            os.write(sim.master, f"\r\n{BANNER}\r\n".encode())  # the stale power-up banner
+            time.sleep(0.05)  # the host writes $I meanwhile
+        seen["reset"] += 1
+        reset()
+
+    def slow_first_info(text):
+        if text.strip().upper() == "$I" and not seen["$I"]:
+            seen["$I"] += 1
+            time.sleep(0.1)  # answered after the host had time to send $I again
+        return line(text)
+
+    t_end = time.monotonic() + 2
+    while sim._out and time.monotonic() < t_end:
+        time.sleep(0.01)  # the simulator's own power-up banner: in the pty, flushed at open
+    time.sleep(0.05)
+    sim._reset, sim._line = late_reset, slow_first_info
+    with GrblMotors(sim.path, timeout=5) as m:
+        assert seen == {"reset": 1, "$I": 1}
+        assert any(ln.startswith("[VER:") for ln in m.command("$I"))
+        assert any(ln.startswith("[GC:") for ln in m.command("$G")) and not m._inflight
+        targets = [(0.01 * i, -0.02 * i) for i in range(1, 41)]
+        for tx, ty in targets:
+            m.move_to(tx, ty, wait=False)
+        assert m.wait(timeout=20)
+        assert m.position() == pytest.approx(targets[-1])
+    assert sum(ln.startswith("G90G1") for ln in sim.log) == 40
+    assert sum(ln.strip().upper() == "$I" for ln in sim.log) == 2  # handshake + the check
+
+
+def test_a_line_cut_by_the_read_timeout_is_joined(sim):
+    """pyserial's readline returns what it has when its 0.05 s timeout runs out; the two
+    halves of a slow line are one line (an ``ok`` cut in two would be lost)."""
+    with GrblMotors(sim.path, timeout=5) as m:
+        os.write(sim.master, b"[MSG:cut ")
+        time.sleep(0.2)
+        os.write(sim.master, b"in two]\r\n")
+        t_end = time.monotonic() + 2
+        while "[MSG:cut in two]" not in m.messages and time.monotonic() < t_end:
+            time.sleep(0.01)
+        assert "[MSG:cut in two]" in m.messages
+        assert not any(ln.startswith("[MSG:cut") and ln != "[MSG:cut in two]" for ln in m.messages)
+
+
 def test_error_codes_become_one_line_errors(sim):
     with GrblMotors(sim.path) as m:
         with pytest.raises(MotorCommandError, match=r"error:20 \(unsupported command\)") as e:

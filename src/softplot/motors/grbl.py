@@ -168,14 +168,22 @@ class _Discarded(MotorError):
 
 
 class _Pending:
-    __slots__ = ("line", "nbytes", "done", "reply", "info")
+    """A line written to the controller and its answer to come.
 
-    def __init__(self, line: str):
+    ``outlives_banner``: the line was written after a soft reset whose banner may still be on
+    its way (the connect handshake); the controller reads it after the 0x18 and answers it
+    after that banner, so banners do not discard it (a line lost in a reboot times out).
+    """
+
+    __slots__ = ("line", "nbytes", "done", "reply", "info", "outlives_banner")
+
+    def __init__(self, line: str, outlives_banner: bool = False):
         self.line = line
         self.nbytes = len(line) + 1
         self.done = threading.Event()
         self.reply: str | Exception | None = None
         self.info: list[str] = []
+        self.outlives_banner = outlives_banner
 
 
 class GrblMotors(Motors):
@@ -332,6 +340,7 @@ class GrblMotors(Motors):
     # ------------------------------------------------------------------ reader
     def _read_loop(self):
         ser = self.ser
+        part = b""  # a line cut by the read timeout, waiting for its end
         while ser is self.ser and ser is not None:
             try:
                 raw = ser.readline()
@@ -340,7 +349,11 @@ class GrblMotors(Motors):
                 return
             if not raw:
                 continue
-            line = raw.decode("ascii", "replace").strip()
+            part += raw
+            if not part.endswith(b"\n"):
+                continue
+            line = part.decode("ascii", "replace").strip()
+            part = b""
             if line:
                 self._dispatch(line)
 
@@ -392,10 +405,15 @@ class GrblMotors(Motors):
             elif line.startswith("Grbl "):
                 self._banner_seq += 1
                 err = _Discarded(f"controller on {self.port} reset; line discarded")
+                kept: deque[_Pending] = deque()
                 while self._inflight:
                     p = self._inflight.popleft()
-                    p.reply = err
-                    p.done.set()
+                    if p.outlives_banner:
+                        kept.append(p)
+                    else:
+                        p.reply = err
+                        p.done.set()
+                self._inflight.extend(kept)
             elif line.startswith("$") and "=" in line:
                 k, _, v = line[1:].partition("=")
                 try:
@@ -423,12 +441,16 @@ class GrblMotors(Motors):
         """Send a real-time command (``b"?"``, ``b"!"``, ``b"~"``, ``b"\\x18"``, ``b"\\x85"``)."""
         self._write(byte)
 
-    def send(self, line: str, *, sync: bool | None = None) -> _Pending:
+    def send(
+        self, line: str, *, sync: bool | None = None, outlives_banner: bool = False
+    ) -> _Pending:
         """Queue a line under the streaming protocol; returns its pending reply.
 
         ``sync=True`` waits until nothing else is in flight first (send-response).
+        ``outlives_banner=True``: the next banner does not discard the line (see
+        :meth:`_handshake`).
         """
-        p = _Pending(line)
+        p = _Pending(line, outlives_banner)
         sync = (self.streaming == "send-response") if sync is None else sync
         t_end = time.monotonic() + self.timeout
         with self._cv:
@@ -517,11 +539,25 @@ class GrblMotors(Motors):
         self.alarm = None
 
     def _handshake(self, attempts: int = 4) -> list[str]:
-        """``$I`` until it is answered (a late banner may discard the first tries)."""
+        """``$I`` until it is answered; returns its ``[VER:..]``/``[OPT:..]`` lines.
+
+        The banner :meth:`soft_reset` waited for may be a stale one (the power-up banner
+        still in the line when the port was opened); the reset's own banner then arrives
+        after ``$I`` was written. The controller answers ``$I`` anyway (it reads the 0x18
+        first), so that banner must not discard it: were ``$I`` sent again, the first
+        answer would be taken for the second and every later ``ok`` for the line before
+        it, and char-count streaming would overfill the 128-byte buffer. Only a line lost
+        outright (a controller still booting) is sent again, after ``timeout``.
+        """
         for i in range(attempts):
+            p = self.send("$I", sync=True, outlives_banner=True)
             try:
-                info = self.command("$I")
-            except _Discarded:
+                info = self._result(p, None)
+            except (_Discarded, MotorTimeout):
+                with self._cv:
+                    if p in self._inflight:
+                        self._inflight.remove(p)
+                self.fault = None
                 if i == attempts - 1:
                     raise
                 continue
