@@ -63,6 +63,45 @@ def test_dust_and_scratches_over_arms_do_not_pull_centres():
     assert max(errs) < 0.03, errs
 
 
+def test_refused_crosses_are_measured_again_from_three_half_arms(monkeypatch):
+    """A cross that the acceptance tests refuse in every fit of all its arms (here by a
+    stand-in: what one half-arm on conflicting scene content does) is fitted again from its
+    neighbours' prediction, once without each half-arm, and measured from its clean parts;
+    a cross cut by the scan edge is never fitted."""
+    import importlib
+
+    det_mod = importlib.import_module("softplot.marks.detect")
+    img, truth = render(CAM, 13, dpi=1000, scene="none", noise_sigma=0.01,
+                        crop_mm=(4.0, 0.0, 0.0, 0.0))
+    tx = _truth_xy(truth)
+    picked = ["R2C3", "R5C5", "R8C7"]
+    at = np.array([tx[n] for n in picked])
+    orig = det_mod.measure
+
+    def refusing(sc, shape, c0, *a, **k):
+        f = orig(sc, shape, c0, *a, **k)
+        if k.get("drop_part") is None:  # every fit of the whole cross
+            near = (np.hypot(*(np.asarray(c0)[:, None, :] - at[None]).transpose(2, 0, 1))
+                    < 3.0).any(1)
+            f.ok[near] = False
+            for j in np.where(near)[0]:
+                f.reason[j] = "refused (test)"
+        return f
+
+    monkeypatch.setattr(det_mod, "measure", refusing)
+    det = detect(scan_of(img, truth), CAM)
+    res = evaluate(det, truth, CAM)
+    assert not res["wrong"] and not res["claimed"]
+    states = {m["name"]: m["state"] for m in truth["marks"]}
+    for n in picked:
+        i = det.name.index(n)
+        assert det.status[i] == "measured", (n, det.reason[i])
+        assert np.hypot(*(det.xy[i] - tx[n])) < 0.05
+    for i, n in enumerate(det.name):
+        if states[n] != "visible":
+            assert det.status[i] == "missing"
+
+
 def test_scene_crosses_never_get_a_grid_id():
     img, truth = render(CAM, 13, dpi=900, scene="texture")
     img = img.copy()

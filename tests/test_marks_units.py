@@ -74,6 +74,24 @@ def test_lsm_reaches_the_cramer_rao_bound():
     assert np.all(res.gain < 0)  # dark marks
 
 
+def test_lsm_holds_the_blur_when_asked():
+    """``fit_blur=False`` keeps the blur at ``s0`` (the refits and rescues of ``detect`` hold
+    the set's median): held at the truth the centres are as good as with a free blur."""
+    stack, c, A, shape = _render_cross(60, 30.0, 2.2, 0.9, 0.02, 8, theta=0.05)
+    c0 = c + np.random.default_rng(9).normal(0, 0.3, c.shape)
+    free = lsm(stack, np.zeros((len(c), 2)), c0, A, shape, s0=1.2, init_err=0.6)
+    held = lsm(stack, np.zeros((len(c), 2)), c0, A, shape, s0=0.9, init_err=0.6,
+               fit_blur=False)
+    wrong = lsm(stack, np.zeros((len(c), 2)), c0, A, shape, s0=1.4, init_err=0.6,
+                fit_blur=False)
+    assert np.allclose(held.s, 0.9) and np.allclose(wrong.s, 1.4)
+    assert np.abs(free.s - 0.9).max() > 1e-3  # free: estimated, not the start
+    rms = {k: float(np.sqrt(np.mean((r.centre - c) ** 2)))
+           for k, r in (("free", free), ("held", held))}
+    bound = centre_crb(shape, 0.9, 0.5, 0.02, A=A)
+    assert rms["held"] <= 1.2 * bound and rms["held"] <= 1.1 * rms["free"], (rms, bound)
+
+
 def test_closed_form_bound_is_the_wide_line_limit():
     # wide lines, long arms: the numerical bound (all nuisance parameters) approaches the
     # closed form; thin lines carry less information than two separate edges
@@ -232,3 +250,34 @@ def test_compiled_cross_model_matches_numpy(seed):
     p2 = p.copy()
     p2[:, 0] += 0.01
     assert np.abs(kernels.cross_model(p2, data, shape)[0] - Mk).max() > 1e-4
+
+
+def test_measure_retry_holds_the_accepted_marks_median_blur():
+    """The retry of a mark that failed the first pass (here: started 8.5 px off, where the
+    first pass trusts its start to 0.6 px) holds the blur at the median of the marks the
+    first pass accepted; ``blur=`` holds it everywhere."""
+    from softplot.io import Scan
+    from softplot.marks.measure import measure
+    from softplot.marks.template import cross_shape
+    from softplot.synthetic import ScanSpec, TruthMapping, render_scan
+
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=1000, scene="none", noise_sigma=0.01,
+                                                     blur_sigma_px=1.0), 21)
+    sc = Scan.from_array(img, dpi=truth["dpi"])
+    ppm = truth["dpi"] / 25.4
+    shape = cross_shape(load_camera("rollei-6006"), ppm)
+    rs = [m for m in truth["marks"] if m["kind"] == "reseau"][30:40]
+    xy = np.array([[m["x"], m["y"]] for m in rs])
+    film = np.array([[m["film_x"], m["film_y"]] for m in rs])
+    A = np.linalg.inv(TruthMapping.from_truth(truth).jacobian(film)
+                      @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    sign = -1 if truth["polarity"] == "positive" else 1
+    c0 = xy.copy()
+    c0[0] += (6.0, 6.0)  # between the arms
+    f = measure(sc, shape, c0, A, 1.05, 1.0, sign, anchor=xy, max_shift=1.0)
+    assert f.ok.all(), f.reason
+    assert np.hypot(*(f.xy[0] - xy[0])) < 0.05
+    assert f.s[0] == pytest.approx(np.median(f.s[1:]), abs=1e-9)
+    assert np.ptp(f.s[1:]) > 1e-4  # the first pass estimates each mark's blur
+    g = measure(sc, shape, xy, A, 1.3, 0.5, sign, blur=1.3)
+    assert np.allclose(g.s, 1.3)

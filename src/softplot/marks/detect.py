@@ -417,8 +417,11 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
                                          floor_px=floor_px)
     A_fit = A0.copy()
     A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
+    fitted = np.zeros(N, bool)
+    fitted[idx] = True
     if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
-               init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv):
+               init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv,
+               blur=_held_blur(fine), fitted=fitted):
         sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
         Hm, residual, rms = _reject_outliers(film, xy, status, reason, Hm, sigma,
                                              floor_px=floor_px)
@@ -530,8 +533,9 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
     from it by more than ``z_max`` times the robust spread of that element's departures over
     all accepted marks (scaled by the prediction's own variance factor, larger at the grid's
     outline), or where the mark was not accepted, the mark is fitted again with the predicted
-    affine held (the half-arm test then sees a pulled half and drops it); the refit replaces
-    the first when accepted. The spread adapts to the scan: where the prediction is the
+    affine held (the half-arm test then sees a pulled half and drops it), and the blur held
+    at the accepted marks' median (:func:`_held_blur`); the refit replaces the first when
+    accepted. The spread adapts to the scan: where the prediction is the
     weaker of the two (a 100 um deformation at 2400 dpi, low noise) only the marks the scene
     really pulled stand out. Modifies ``fine`` in place.
     """
@@ -551,8 +555,9 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
     if redo.size == 0:
         return
     start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
+    blur = _held_blur(fine)
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
-                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv)
+                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur)
     # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
     # the outlier test's leave-one-out prediction of its residual against a projective model
     both = fine.ok[redo] & f2.ok
@@ -566,9 +571,18 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
         f2.ok[np.where(both)[0][worse]] = False
     for j, i in enumerate(redo):
         if f2.ok[j]:
-            fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], cons[i]
+            fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
             fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
                 f2.score[j], f2.cnr[j], True, "")
+
+
+def _held_blur(fine) -> float | None:
+    """The blur (px) that refits and rescues hold: the median of the accepted marks' (the
+    scanner's and the film's blur, the same for neighbouring marks; a free blur lets a fit
+    trade it against scene content along a bar). None with fewer than 5 accepted marks."""
+    s = fine.s[fine.ok] if fine.s is not None else np.zeros(0)
+    s = s[np.isfinite(s)]
+    return float(np.median(s)) if s.size >= 5 else None
 
 
 def _transform_json(Hm, rms, n) -> dict:
@@ -709,27 +723,44 @@ def _outline(film):
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift, ppm, scene_tv=0):
-    """Measure rejected crosses again from three of their four half-arms.
+            sign, rules, max_shift, ppm, scene_tv=0, blur=None, fitted=None):
+    """Measure rejected and refused crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
-    half-arm. Each rejected cross is fitted four times, each time without one half-arm, from
+    half-arm; one that the acceptance tests refused (``status`` "missing" among ``fitted``,
+    (M,) bool, default all) often has one half-arm on conflicting scene content. Each such
+    cross is fitted four times, each time without one half-arm, from
     the position its neighbours predict and with the affine their positions predict held
     (:func:`_position_affine`; from ``A`` (M, 2, 2), free, where the neighbours do not
     surround the cross): a free affine would let the remaining half of that bar set its
     direction alone, and the cross's precision would drop several times. A fit that passes
     the acceptance tests and lies within the outlier test's own threshold of that prediction
     is a measurement of the cross by its clean parts (of several such, the best-correlated).
+    The blur is held at ``blur`` (px) when given. A cross that was not measured at all is
+    predicted from the measured ones alone.
     Modifies the arrays in place; returns whether any cross was recovered.
     """
     st = np.array(status)
-    rej = np.where(st == "rejected")[0]
+    fitted = np.ones(len(st), bool) if fitted is None else np.asarray(fitted, bool)
+    rej = np.where((st == "rejected") | ((st == "missing") & fitted))[0]
     meas = np.where(st == "measured")[0]
     if rej.size == 0 or meas.size < 8:
         return False
     r = xy - grid.apply_h(Hm, film)
-    ids = np.concatenate([meas, rej])
-    pred = _local_prediction(film[ids], r[ids], sigma=sigma[ids])
+    miss = ~np.isfinite(r[rej]).all(1)
+    ids = np.concatenate([meas, rej[~miss]])
+    p_ids = _local_prediction(film[ids], r[ids], sigma=sigma[ids])
+    pred = np.zeros((meas.size + rej.size, 2))
+    pred[: meas.size] = p_ids[: meas.size]
+    pred[meas.size + np.where(~miss)[0]] = p_ids[meas.size :]
+    if miss.any():  # not measured at all: predicted from the measured crosses alone
+        q = rej[miss]
+        pm = _local_fit(film[q], film[meas], r[meas], 16, 2, n_sigma=sigma[meas])
+        inner_q = ~_outline(film)[q]
+        if inner_q.any():
+            pm[inner_q] = _local_fit(film[q[inner_q]], film[meas], r[meas], 24, 3,
+                                     n_sigma=sigma[meas])
+        pred[meas.size + np.where(miss)[0]] = pm
     edge = _outline(film)
     dev_m = np.hypot(*(r[meas] - pred[: meas.size]).T)
     spread = _spread(dev_m, edge[meas])  # constant within each group
@@ -750,7 +781,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
         def fit(k, grp=grp, Ag=Ag, fit_shape=fit_shape):
             return measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
                            anchor=target[grp], max_shift=max_shift, drop_part=k,
-                           fit_shape=fit_shape, scene_tv=scene_tv)
+                           fit_shape=fit_shape, scene_tv=scene_tv, blur=blur)
 
         # the four fits are independent (on the threads); merged in order
         for f2 in thread_map(fit, range(4)):

@@ -447,6 +447,7 @@ def lsm(
     arm_z: float = 3.0,
     sat_bg: np.ndarray | None = None,
     clip: tuple[float, float] | None = None,
+    fit_blur: bool = True,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -495,6 +496,8 @@ def lsm(
     clip : (lo, hi), optional
         The grey range of the scan: values at its ends are censored (Tobit): they count only
         where the model is inside the range.
+    fit_blur : bool
+        Estimate the blur ``s`` (else hold it at ``s0`` in the fine stage).
 
     Returns
     -------
@@ -516,6 +519,8 @@ def lsm(
     full = np.ones(_NP, bool)
     if not fit_shape:
         full[2:6] = False
+    if not fit_blur:
+        full[6] = False
     capture = np.zeros(_NP, bool)
     capture[[0, 1, 7, 8, 9, 10, 11]] = True
 

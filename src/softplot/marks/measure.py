@@ -95,6 +95,8 @@ class Fine:
     edge: np.ndarray | None = None
     #: joint-scene passes used (:func:`_refit_scene`; 0: the opening's scene)
     scene_tv: int = 0
+    #: fitted blur of each mark (px; NaN where not fitted)
+    s: np.ndarray | None = None
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -184,7 +186,7 @@ def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndar
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
-         scene_tv=0, rules=None, first=None, edges=False):
+         scene_tv=0, rules=None, first=None, edges=False, fit_blur=True):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
@@ -208,7 +210,7 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     del grad  # not held through LSM (the fine stage's peak memory)
     res = first if first is not None else lsm(
         stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-        background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0))
+        background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0), fit_blur=fit_blur)
     edge = np.full(len(c0), np.nan)
     if cross:
         if top is not None:
@@ -216,7 +218,7 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
             edge = top / np.maximum(np.abs(res.gain), 1e-6)
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
-                               rules or AcceptRules())
+                               rules or AcceptRules(), fit_blur)
     return res, edge
 
 
@@ -252,7 +254,8 @@ REFIT_MAX_MOVE = 0.5
 REFIT_DELTA = 0.6
 
 
-def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules):
+def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
+                 fit_blur=True):
     """LSM again with the scene under each fitted cross estimated jointly with it.
 
     ``passes`` times: the cross of the last fit (its blurred template ``T`` and its fitted grey
@@ -293,7 +296,7 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         # (without fit_shape the fitted affine is A0's)
         new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=s_med, init_err=0.3,
                   fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
-                  clip=(0.0, 1.0))
+                  clip=(0.0, 1.0), fit_blur=fit_blur)
         move = np.hypot(*(new.centre - res.centre[idx]).T)
         take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
                 & (move <= REFIT_MAX_MOVE))
@@ -397,14 +400,15 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
             max_shift: float | None = None, chunk: int = 20,
             drop_part: int | None = None, scene_tv: int = 0, auto_tv: int = 0,
-            busy=None) -> Fine:
+            busy=None, blur: float | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
     the acceptance tests see them all at once. A first pass trusts ``c0`` to
     half a pixel (no capture stage); marks that fail the acceptance tests are fitted again
     from ``anchor`` (the prediction) with the capture stage for ``init_err``, and an accepted
-    outcome replaces the first.
+    outcome replaces the first; the retry holds the blur at the median of the first pass's
+    accepted marks (when there are 5 or more).
 
     Parameters
     ----------
@@ -428,6 +432,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     drop_part : int, optional
         Crosses only: one half-arm (0: +u, 1: +v, 2: -u, 3: -v of the mark frame) gets weight
         0, so the mark is measured from the other three.
+    blur : float, optional
+        Hold the blur at this value (px) in every fit instead of estimating it.
     scene_tv : int
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
@@ -440,6 +446,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
     n = len(c0)
+    fit_blur = blur is None
+    if blur is not None:
+        s0 = float(blur)
     A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
     if n == 0:
         z = np.zeros(0)
@@ -455,6 +464,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     ok = np.zeros(n, bool)
     Afit = np.full((n, 2, 2), np.nan)
     edge = np.full(n, np.nan)
+    s_fit = np.full(n, np.nan)
     reason = [""] * n
     fast = min(init_err, 0.6)
     passes = [(np.arange(n), fast)]
@@ -470,9 +480,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # the scene-edge figures only where they decide: the first pass of an "auto" call
         want = p_i == 0 and not scene_tv and bool(auto_tv) and busy is not None
 
-        def run(k, starts=starts, ie=ie, tv=scene_tv, want=want):
+        def run(k, starts=starts, ie=ie, tv=scene_tv, want=want, s0=s0, fb=fit_blur):
             return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part, tv, rules, edges=want)
+                        drop_part, tv, rules, edges=want, fit_blur=fb)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
@@ -490,10 +500,10 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
             scene_tv = auto_tv
 
-            def rerun(a, starts=starts, ie=ie, tv=scene_tv):
+            def rerun(a, starts=starts, ie=ie, tv=scene_tv, s0=s0, fb=fit_blur):
                 k, first = a
                 return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                            drop_part, tv, rules, first)[0]
+                            drop_part, tv, rules, first, fit_blur=fb)[0]
 
             res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
                                                      strict=True))))
@@ -503,8 +513,15 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             if p_i == 0 or good[j]:
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
                 score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
+                s_fit[i] = res.s[j]
             if not good[j]:
                 retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
-    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv)
+            if fit_blur and good.sum() >= 5:
+                # the blur is the scanner's and the film's, the same for neighbouring marks:
+                # the retry holds the accepted marks' median (a free blur let fits of marks on
+                # conflicting scene content run to 3-25 px)
+                s0 = float(np.median(res.s[good]))
+                fit_blur = False
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit)
