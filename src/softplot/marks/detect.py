@@ -19,11 +19,15 @@ Pipeline for a reseau camera (pixel system throughout, film mm for the certifica
    (:mod:`softplot.marks.scene_tv`: TV-regularised deconvolution with the fitted cross held,
    then LSM again, twice);
 5. acceptance tests (contrast, correlation, shape, support of each arm): a mark that fails is
-   "missing"; crosses whose extent leaves the scan are "missing" (cut) without a fit;
+   "missing"; crosses whose extent leaves the scan are "missing" (cut) without a fit; crosses
+   whose fitted affine departs from their neighbours', or that failed, are refitted with the
+   neighbours' affine and blur held (:func:`_shape_from_neighbours`);
 6. the global projective model refitted to the measured crosses; a cross whose residual
    departs from its neighbours' (a smooth film deformation moves neighbours alike) by more than
-   a robust threshold is "rejected"; measured crosses that lie farther than
-   :data:`MAX_GRID_RMS_MM` (rms) off any projective grid are not a reseau (an error).
+   a robust threshold is "rejected"; rejected and refused crosses are fitted again from the
+   neighbours' prediction, once without each half-arm (:func:`_rescue`); measured crosses
+   that lie farther than :data:`MAX_GRID_RMS_MM` (rms) off any projective grid are not a
+   reseau (an error).
 
 Fiducial cameras go through :mod:`softplot.marks.fiducial`.
 """
