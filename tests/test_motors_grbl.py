@@ -156,6 +156,29 @@ def test_stale_power_up_banner_keeps_replies_in_step(sim):
     assert sum(ln.strip().upper() == "$I" for ln in sim.log) == 2  # handshake + the check
 
 
+@pytest.mark.parametrize("lost", [1, 9])
+def test_handshake_resends_a_lost_info_line_once(sim, lost):
+    """A ``$I`` the controller never answers (lost while it boots) is sent again once after
+    the timeout; a controller that answers neither fails the connect with a timeout."""
+    line, seen = sim._line, {"n": 0}
+
+    def lossy(text):
+        if text.strip().upper() == "$I" and seen["n"] < lost:
+            seen["n"] += 1
+            return None  # no answer at all
+        return line(text)
+
+    sim._line = lossy
+    if lost == 1:
+        with GrblMotors(sim.path, timeout=0.5) as m:
+            assert any(ln.startswith("[VER:") for ln in m.command("$I")) and not m._inflight
+        assert sum(ln.strip().upper() == "$I" for ln in sim.log) == 3
+    else:
+        with pytest.raises(MotorTimeout, match=r"\$I"):
+            GrblMotors(sim.path, timeout=0.5)
+        assert sum(ln.strip().upper() == "$I" for ln in sim.log) == 2  # sent twice, not 4x
+
+
 def test_a_line_cut_by_the_read_timeout_is_joined(sim):
     """pyserial's readline returns what it has when its 0.05 s timeout runs out; the two
     halves of a slow line are one line (an ``ok`` cut in two would be lost)."""

@@ -447,7 +447,7 @@ class GrblMotors(Motors):
         """Queue a line under the streaming protocol; returns its pending reply.
 
         ``sync=True`` waits until nothing else is in flight first (send-response).
-        ``outlives_banner=True``: the next banner does not discard the line (see
+        ``outlives_banner=True``: a banner does not discard the line (see
         :meth:`_handshake`).
         """
         p = _Pending(line, outlives_banner)
@@ -547,19 +547,21 @@ class GrblMotors(Motors):
         first), so that banner must not discard it: were ``$I`` sent again, the first
         answer would be taken for the second and every later ``ok`` for the line before
         it, and char-count streaming would overfill the 128-byte buffer. Only a line lost
-        outright (a controller still booting) is sent again, after ``timeout``.
+        outright (a controller still booting) is sent again, once, after ``timeout``.
         """
+        timeouts = 0
         for i in range(attempts):
             p = self.send("$I", sync=True, outlives_banner=True)
             try:
                 info = self._result(p, None)
-            except (_Discarded, MotorTimeout):
+            except (_Discarded, MotorTimeout) as exc:
                 with self._cv:
                     if p in self._inflight:
                         self._inflight.remove(p)
-                self.fault = None
-                if i == attempts - 1:
+                timeouts += isinstance(exc, MotorTimeout)
+                if i == attempts - 1 or timeouts > 1:
                     raise
+                self.fault = None
                 continue
             ver = [ln for ln in info if ln.startswith("[VER:")]
             if ver and not ver[0].startswith("[VER:1.1"):
