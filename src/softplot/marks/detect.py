@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.marks import coarse, grid
-from softplot.marks.measure import AcceptRules, measure
+from softplot.marks.measure import AcceptRules, measure, median_blur
 from softplot.marks.result import Detection
 from softplot.marks.template import cross_shape
 from softplot.runtime import thread_map
@@ -581,12 +581,9 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
 
 
 def _held_blur(fine) -> float | None:
-    """The blur (px) that refits and rescues hold: the median of the accepted marks' (the
-    scanner's and the film's blur, the same for neighbouring marks; a free blur lets a fit
-    trade it against scene content along a bar). None with fewer than 5 accepted marks."""
-    s = fine.s[fine.ok] if fine.s is not None else np.zeros(0)
-    s = s[np.isfinite(s)]
-    return float(np.median(s)) if s.size >= 5 else None
+    """The blur (px) that refits and rescues hold (:func:`softplot.marks.measure.median_blur`
+    of the accepted marks)."""
+    return median_blur(fine.s, fine.ok) if fine.s is not None else None
 
 
 def _transform_json(Hm, rms, n) -> dict:
@@ -727,12 +724,13 @@ def _outline(film):
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift, ppm, scene_tv=0, blur=None, fitted=None):
+            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None):
     """Measure rejected and refused crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
     half-arm; one that the acceptance tests refused (``status`` "missing" among ``fitted``,
-    (M,) bool, default all) often has one half-arm on conflicting scene content. Each such
+    (M,) bool: the crosses that were fitted, i.e. not cut by the scan edge) often has one
+    half-arm on conflicting scene content. Each such
     cross is fitted four times, each time without one half-arm, from
     the position its neighbours predict and with the affine their positions predict held
     (:func:`_position_affine`; from ``A`` (M, 2, 2), free, where the neighbours do not
@@ -745,8 +743,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
     Modifies the arrays in place; returns whether any cross was recovered.
     """
     st = np.array(status)
-    fitted = np.ones(len(st), bool) if fitted is None else np.asarray(fitted, bool)
-    rej = np.where((st == "rejected") | ((st == "missing") & fitted))[0]
+    rej = np.where((st == "rejected") | ((st == "missing") & np.asarray(fitted, bool)))[0]
     meas = np.where(st == "measured")[0]
     if rej.size == 0 or meas.size < 8:
         return False

@@ -164,14 +164,28 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     SL *= al
     S += SL
     del SL, al
-    gx = cv2.Sobel(S, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(S, cv2.CV_32F, 0, 1, ksize=3)
-    g = cv2.magnitude(gx, gy)
-    del gx, gy
-    g *= np.float32(1.0 / 8.0)  # |grad S| in grey units per px
+    g = _grad_magnitude(S)
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     g = g.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     return np.ascontiguousarray(S), _prior_weights(g, nz, delta), g
+
+
+def _grad_magnitude(img: np.ndarray) -> np.ndarray:
+    """``|grad img|`` (grey units per px) of a 2-D float32 image: Sobel magnitude / 8."""
+    g = cv2.magnitude(cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3),
+                      cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3))
+    g *= np.float32(1.0 / 8.0)
+    return g
+
+
+def median_blur(s: np.ndarray, ok: np.ndarray, min_count: int = 5) -> float | None:
+    """The blur (px) that later fits hold: the median of the accepted marks' fitted blurs
+    ``s[ok]`` (the scanner's and the film's blur, the same for neighbouring marks; a free blur
+    lets a fit trade it against scene content along a bar); None with fewer than
+    ``min_count`` finite values."""
+    v = np.asarray(s, float)[np.asarray(ok, bool)]
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size >= min_count else None
 
 
 def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndarray:
@@ -325,10 +339,7 @@ def _edge_weights(B, noise, delta):
     """:func:`_prior_weights` of scene estimates ``B`` (N, h, w), ``|grad B|`` by Sobel / 8
     within each patch, as :func:`scene_background` gives its own."""
     B = np.asarray(B, np.float32)
-    mag = np.stack([cv2.magnitude(cv2.Sobel(b, cv2.CV_32F, 1, 0, ksize=3),
-                                  cv2.Sobel(b, cv2.CV_32F, 0, 1, ksize=3)) for b in B])
-    mag *= np.float32(1.0 / 8.0)
-    return _prior_weights(mag, noise, delta)
+    return _prior_weights(np.stack([_grad_magnitude(b) for b in B]), noise, delta)
 
 
 def _replace(res: LSMResult, at: np.ndarray, new: LSMResult, frm: np.ndarray) -> LSMResult:
@@ -518,10 +529,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
-            if fit_blur and good.sum() >= 5:
-                # the blur is the scanner's and the film's, the same for neighbouring marks:
-                # the retry holds the accepted marks' median (a free blur let fits of marks on
-                # conflicting scene content run to 3-25 px)
-                s0 = float(np.median(res.s[good]))
-                fit_blur = False
+            held = median_blur(res.s, good) if fit_blur else None
+            if held is not None:
+                # the retry holds the accepted marks' median blur (a free blur let fits of
+                # marks on conflicting scene content run to 3-25 px)
+                s0, fit_blur = held, False
     return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit)
