@@ -3,6 +3,10 @@
 Accuracy sweeps are parametrised over many renders. The default run samples a deterministic
 subset of every sweep (so `make test` stays within minutes on 2 cores); ``SOFTPLOT_FULL=1``
 runs every case. Sampled cases are the same on every run.
+
+The detection sweep's pooled rate (issue 3 point 6) is a figure of all its cases together;
+the hooks at the end collect each case's counts (with xdist, from the workers' reports) and
+fail the run when it is below 99.5 %.
 """
 
 from __future__ import annotations
@@ -40,3 +44,51 @@ def sweep(cases: list, k: int, seed: int = 0) -> list:
                 )
             )
     return out
+
+
+#: ``record_property`` key of a detection-sweep case: (visible crosses, measured correctly)
+POOLED_RATE_KEY = "pooled_detection"
+#: issue 3 point 6: at least this share of the visible crosses of the sweep measured
+POOLED_RATE = 0.995
+_pooled: list[tuple[str, int, int]] = []
+
+
+def pytest_runtest_logreport(report):
+    """Collect the detection counts of every sweep case (in the controller with xdist too:
+    a worker's report carries its ``user_properties``)."""
+    if report.when != "call":
+        return
+    for key, val in report.user_properties:
+        if key == POOLED_RATE_KEY:
+            _pooled.append((report.nodeid, int(val[0]), int(val[1])))
+
+
+def _pooled_rate():
+    vis = sum(v for _, v, _ in _pooled)
+    got = sum(m for _, _, m in _pooled)
+    return vis, got
+
+
+def pytest_terminal_summary(terminalreporter):
+    vis, got = _pooled_rate()
+    if vis:
+        terminalreporter.write_line(
+            f"detection sweep, pooled: {got} of {vis} visible crosses measured "
+            f"({100.0 * got / vis:.2f} %, at least {100 * POOLED_RATE:.1f} % required) over "
+            f"{len(_pooled)} renders")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Fail the run when the pooled detection rate of the sweep's cases that ran is below
+    :data:`POOLED_RATE` (each case checks its own rate too, :mod:`test_marks_accuracy`):
+    the rate is a share of all the visible crosses, so it is checked over all of them."""
+    if hasattr(session.config, "workerinput"):  # an xdist worker: the controller decides
+        return
+    vis, got = _pooled_rate()
+    if vis and got < POOLED_RATE * vis:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+        tr = session.config.pluginmanager.get_plugin("terminalreporter")
+        tr.ensure_newline()
+        tr.write_line(
+            f"FAILED: detection sweep, pooled rate {100.0 * got / vis:.2f} % < "
+            f"{100 * POOLED_RATE:.1f} % ({vis - got} of {vis} visible crosses not measured)")

@@ -5,8 +5,9 @@ and checks, per scan:
 
 * 0 crosses given a wrong row/col (a measured cross more than 1 px from its own truth);
 * 0 crosses claimed where the truth says covered, cut or outside;
-* at most ``max(1, 0.5 %)`` of the visible crosses not measured (the pooled rate of the full
-  sweep is reported in docs/accuracy.md);
+* at most ``max(1, 0.5 %)`` of the visible crosses not measured; and over all cases of the
+  run together, busy renders included, at least 99.5 % measured (the pooled rate: checked
+  by ``conftest.py`` at the end of the session, a failure fails the run);
 * RMS error of the measured crosses <= 1.5 x the Cramér-Rao bound of that render
   (:func:`softplot.marks.crb.render_crb`: the render's blur, noise + quantisation, line width,
   arm length, and pixel by pixel the scene each cross hides, saturated pixels censored);
@@ -30,7 +31,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from conftest import sweep
+from conftest import POOLED_RATE_KEY, sweep
 from softplot.camera import load_camera
 from softplot.io import Scan
 from softplot.marks import detect
@@ -208,12 +209,15 @@ def _ids(v):
 
 
 @pytest.mark.parametrize("label,cam,kw,seed", sweep(CASES, 16, seed=3), ids=_ids)
-def test_detection_accuracy_sweep(label, cam, kw, seed):
+def test_detection_accuracy_sweep(label, cam, kw, seed, record_property):
     img, truth = render(cam, seed, **kw)
     det = detect(scan_of(img, truth), cam)
     res = evaluate(det, truth, cam, scene_of(cam, seed, **kw),
                    scene_shift=bool(os.environ.get("SOFTPLOT_SWEEP_LOG")))
     _log(label, res)
+    # the pooled detection rate of the run (issue 3 point 6: >= 99.5 % of the visible
+    # crosses), busy renders included, is checked over all cases by conftest.py
+    record_property(POOLED_RATE_KEY, (res["visible"], res["measured"]))
     scene = kw.get("scene", "texture")
     if not gap(scene, res):
         check(res, label)
