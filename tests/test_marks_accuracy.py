@@ -158,7 +158,7 @@ def check(res: dict, label: str) -> None:
 def gap(scene: str, res: dict) -> bool:
     """Renders in the documented open gap of point 6: busy scenes (sharp scene edges under or
     along the arms of a few crosses bias them by 0.01-0.15 px; ``detect`` takes the joint scene
-    estimate there, which meets every criterion on 28 of the 32)."""
+    estimate there, which meets every criterion on 30 of the 32)."""
     return scene == "busy"
 
 

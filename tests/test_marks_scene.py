@@ -71,7 +71,8 @@ def _edge_scene(x_mm, y_mm):
 def test_joint_scene_removes_the_pull_of_an_edge_along_the_bars():
     """Every vertical bar has a scene edge along it, half a pixel outside. The opening puts
     that edge at the bar's edge and every cross is pulled by about 0.24 px in x (1200 dpi,
-    blur 1 px, noise 1 %); the joint scene estimate takes most of it out."""
+    blur 1 px, noise 1 %); the joint scene estimate takes most of it out (0.056 px with the
+    passes that go on while a cross moves; 0.11 px with two passes of 20 iterations)."""
     img, truth = render_scan("rollei-6006", ScanSpec(dpi=1200, scene=_edge_scene,
                                                      blur_sigma_px=1.0, noise_sigma=0.01), 5)
     sc = Scan.from_array(img, dpi=1200)
@@ -83,7 +84,7 @@ def test_joint_scene_removes_the_pull_of_an_edge_along_the_bars():
     rx_open = float(np.sqrt(np.mean(e_open[:, 0] ** 2)))
     rx_joint = float(np.sqrt(np.mean(e_joint[:, 0] ** 2)))
     assert rx_open > 0.15  # the pull exists
-    assert rx_joint < 0.6 * rx_open and rx_joint < 0.15
+    assert rx_joint < 0.35 * rx_open and rx_joint < 0.08
     # across the edge (y) the scene is flat along the bar: both as precise
     assert np.sqrt(np.mean(e_joint[:, 1] ** 2)) < 0.03
 

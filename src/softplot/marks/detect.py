@@ -17,7 +17,7 @@ Pipeline for a reseau camera (pixel system throughout, film mm for the certifica
    scene has sharp edges at the crosses (``scene="auto"``, :func:`_busy_scene`) the fits are
    refitted with the scene estimated jointly with each cross
    (:mod:`softplot.marks.scene_tv`: TV-regularised deconvolution with the fitted cross held,
-   then LSM again, twice);
+   then LSM again: twice for every cross, twice more for those still moving);
 5. acceptance tests (contrast, correlation, shape, support of each arm): a mark that fails is
    "missing"; crosses whose extent leaves the scan are "missing" (cut) without a fit; crosses
    whose fitted affine departs from their neighbours', or that failed, are refitted with the
@@ -63,8 +63,9 @@ OUTLIER_FLOOR_INNER = (0.05, 0.0005)
 MAX_GRID_RMS_MM = 0.3
 #: the scene models of :func:`detect` (``scene=``)
 SCENE_MODELS = ("auto", "opening", "joint")
-#: refits with the joint scene estimate (:func:`softplot.marks.measure._refit_scene`)
-JOINT_PASSES = 2
+#: refits with the joint scene estimate (:func:`softplot.marks.measure._refit_scene`; the
+#: third and fourth only for the crosses still moving)
+JOINT_PASSES = 4
 #: ``scene="auto"`` takes the joint scene estimate when at least BUSY_COUNT crosses have a
 #: scene edge steeper than BUSY_EDGE x their contrast per px in their footprint. The sweep's
 #: smooth textures reach 0.09 at most, its busy scenes 0.18-0.5 (docs/accuracy.md)

@@ -266,6 +266,10 @@ REFIT_MAX_MOVE = 0.5
 #: position uncertainty (px) of the joint scene estimate's edges in the prior pixel weights
 #: ``1 / (1 + (delta |grad B| / noise)^2)`` (the opening's is 1 px)
 REFIT_DELTA = 0.6
+#: every cross takes this many joint-scene passes; later passes only the crosses that the last
+#: one moved by more than :data:`REFIT_SETTLE` x their sigma (the others have settled)
+REFIT_ALL_PASSES = 2
+REFIT_SETTLE = 0.25
 
 
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
@@ -277,31 +281,41 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     :data:`softplot.marks.scene_tv.MU` x the median noise of the set) of
     :func:`softplot.marks.scene_tv.deconv_tv` (the first from the opening's estimate ``bg``,
     the next from the last solution), its gradient gives the prior pixel weights, and LSM is
-    run from the last fit. Only a fit of the expected polarity ``sign`` with the
-    contrast-to-noise of ``rules`` is refitted. (The joint scene can make a fit to scene
-    content pass the acceptance tests: on a negative read as a positive, 25 of 121 did, and
+    run from the last fit. The alternation converges slowly where a scene edge runs along a
+    bar, so it goes on for the crosses that still move: after :data:`REFIT_ALL_PASSES`
+    passes, only a cross the last pass moved by more than :data:`REFIT_SETTLE` x its sigma is
+    refitted. Only a fit of the expected polarity ``sign`` with the contrast-to-noise of
+    ``rules`` is refitted. (The joint scene can make a fit to scene content pass the
+    acceptance tests: on a negative read as a positive, 25 of 121 did, and
     :func:`softplot.marks.detect.detect` refuses such a scan because its measured crosses lie
-    off any grid.) A cross whose refit
-    fails, changes polarity or moves by more than :data:`REFIT_MAX_MOVE` keeps its last fit.
-    Patches in the pixel system (``origin`` their [0, 0] pixels).
+    off any grid.) A cross whose refit fails, changes polarity or moves by more than
+    :data:`REFIT_MAX_MOVE` keeps its last fit. Patches in the pixel system (``origin`` their
+    [0, 0] pixels).
     """
     n = len(res.centre)
     X = np.asarray(bg, np.float32).copy()  # the scene before the blur: the opening's to start
-    for _ in range(passes):
+    moved = np.full(n, np.inf)  # px, by the last pass
+    for p in range(passes):
         ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.s) & np.isfinite(res.noise)
         ok &= np.all(np.isfinite(res.A.reshape(n, 4)), 1)
         ok &= (np.sign(res.gain) == sign) & (res.cnr >= rules.min_cnr)
         if not ok.any():
             return res
+        # the TV weight from the set's median noise: a patch's own residual MAD grows with the
+        # scene's misfit, and TV would flatten the very scenes it is for; it and the blur
+        # from all refitted crosses, not from those still moving
+        noise_set = max(float(np.median(res.noise[ok])), 1e-4)
+        s_med = float(np.median(res.s[ok]))
+        if p >= REFIT_ALL_PASSES:
+            ok &= moved > REFIT_SETTLE * np.nan_to_num(res.sigma, nan=0.0)
+            if not ok.any():
+                return res
         idx = np.where(ok)[0]
         A = res.A[idx]
         T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
         g = stack[idx]
         level = res.level[idx]
-        # the TV weight from the set's median noise: a patch's own residual MAD grows with the
-        # scene's misfit, and TV would flatten the very scenes it is for
-        noise = np.full(len(idx), max(float(np.median(res.noise[idx])), 1e-4))
-        s_med = float(np.median(res.s[idx]))
+        noise = np.full(len(idx), noise_set)
         B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
                                        np.hypot(s_med, np.sqrt(1 / 12)))
         wt = _edge_weights(B, noise, REFIT_DELTA)
@@ -314,6 +328,8 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         move = np.hypot(*(new.centre - res.centre[idx]).T)
         take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
                 & (move <= REFIT_MAX_MOVE))
+        moved[:] = 0.0
+        moved[idx[take]] = move[take]
         res = _replace(res, idx[take], new, np.where(take)[0])
     return res
 
