@@ -116,3 +116,53 @@ def test_unknown_scene_model_is_an_error():
     img, _ = render_scan("rollei-6006", ScanSpec(dpi=300), 1)
     with pytest.raises(Exception, match="scene must be"):
         detect(Scan.from_array(img, dpi=300), "rollei-6006", scene="tv")
+
+
+def test_joint_passes_go_on_only_for_the_crosses_still_moving(monkeypatch):
+    """The joint-scene alternation (:func:`softplot.marks.measure._refit_scene`): the first
+    ``REFIT_ALL_PASSES`` passes refit every cross, the later ones only the crosses the pass
+    before moved by more than ``REFIT_SETTLE`` x their sigma. Over a busy scene some crosses
+    (a scene edge along a bar: the pull converges slowly) still move after two passes, and the
+    others have settled."""
+    from softplot.camera import load_camera
+    from softplot.marks import measure
+    from softplot.marks.lsm import lsm as real_lsm
+    from softplot.marks.measure import AcceptRules
+    from softplot.marks.template import cross_shape
+    from softplot.synthetic import TruthMapping
+
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=1200, scene="busy"), 7)
+    sc = Scan.from_array(img, dpi=1200)
+    ppm = 1200 / 25.4
+    shape = cross_shape(load_camera("rollei-6006"), ppm)
+    rs = [m for m in truth["marks"] if m["kind"] == "reseau" and m["visible"]][:30]
+    film = np.array([[m["film_x"], m["film_y"]] for m in rs])
+    A0 = np.linalg.inv(TruthMapping.from_truth(truth).jacobian(film)
+                       @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    c0 = np.array([[m["x"], m["y"]] for m in rs]) + 0.2
+    sign = 1 if truth["polarity"] == "negative" else -1
+    calls = []
+
+    def spy(stack, origin, c, A, shp, **kw):
+        out = real_lsm(stack, origin, c, A, shp, **kw)
+        calls.append((np.array(c, float), out.centre.copy(), out.sigma.copy()))
+        return out
+
+    monkeypatch.setattr(measure, "lsm", spy)
+    measure._fit(sc, shape, c0, A0, float(np.hypot(1.0, np.sqrt(1 / 12))), 0.75, sign,
+                 True, True, scene_tv=4, rules=AcceptRules())
+    # the first fit, then 2 joint passes of every cross, a third of those still moving, and a
+    # fourth unless all had settled
+    assert len(calls) in (4, 5)
+    n_all = len(calls[1][0])
+    assert n_all >= 28 and len(calls[2][0]) == n_all  # passes 1 and 2: every cross
+    start3, _, _ = calls[3]
+    assert 0 < len(start3) < n_all  # pass 3: some crosses, not all
+    # pass 3 refits exactly the crosses pass 2 moved by more than REFIT_SETTLE x sigma
+    c2_in, c2_out, s2 = calls[2]
+    move = np.hypot(*(c2_out - c2_in).T)
+    still = move > measure.REFIT_SETTLE * s2
+    picked = np.array([np.isclose(start3, p).all(1).any() for p in c2_out])
+    assert np.array_equal(picked, still)
+    if len(calls) == 5:
+        assert len(calls[4][0]) <= len(start3)
