@@ -5,17 +5,16 @@ and checks, per scan:
 
 * 0 crosses given a wrong row/col (a measured cross more than 1 px from its own truth);
 * 0 crosses claimed where the truth says covered, cut or outside;
-* at most ``max(1, 0.5 %)`` of the visible crosses not measured; and over all cases of the
-  run together, busy renders included, at least 99.5 % measured (the pooled rate: checked
-  by ``conftest.py`` at the end of the session, a failure fails the run);
+* over all cases of the run together, busy renders included, at least 99.5 % of the visible
+  crosses measured (issue 3 point 6 states the rate for the sweep: the pooled rate, checked
+  by ``conftest.py`` at the end of the session, a failure fails the run); per scan, a guard
+  of our own against a scan that collapses: at most ``max(1, 0.5 %)`` not measured, at
+  most 10 % on a busy scene (where crosses the scene makes ambiguous are rejected, not
+  reported wrong);
 * RMS error of the measured crosses <= 1.5 x the Cramér-Rao bound of that render
   (:func:`softplot.marks.crb.render_crb`: the render's blur, noise + quantisation, line width,
   arm length, and pixel by pixel the scene each cross hides, saturated pixels censored);
 * RMS <= 0.03 px when the contrast-to-noise ratio is >= 20 and the line width >= 2 px.
-
-Busy scenes must show 0 wrong and 0 claimed crosses like every render; where they miss the
-rate or the RMS criterion the case is reported as xfail with its figures (the open gap of
-issue 3 point 6, docs/accuracy.md "Open gap: busy scenes").
 
 ``SOFTPLOT_FULL=1`` runs the whole sweep; the default run samples it. Set
 ``SOFTPLOT_SWEEP_LOG=file.jsonl`` to append one line of figures per case.
@@ -139,27 +138,24 @@ def evaluate(det, truth, camera: str, scene: np.ndarray | None = None,
 
 
 #: the issue's criteria (point 6): RMS <= 1.5 x the bound of the render; at least 99.5 % of
-#: the visible crosses measured (per scan of 121 crosses: at most 1 not measured).
+#: the visible crosses of the sweep measured (pooled: ``conftest.POOLED_RATE``)
 FACTOR = 1.5
-RATE = 0.995
+#: the per-scan guard (ours, not the issue's): at least this share measured, at most
+#: max(1, ...) lost (per scan of 121 crosses: 1); on a busy scene at least BUSY_SCAN_RATE
+SCAN_RATE = 0.995
+BUSY_SCAN_RATE = 0.90
 
 
-def check(res: dict, label: str) -> None:
+def check(res: dict, label: str, busy: bool = False) -> None:
     assert not res["wrong"], f"{label}: wrong row/col {res['wrong']}"
     assert not res["claimed"], f"{label}: claimed where not visible {res['claimed']}"
-    allowed = max(1, int((1.0 - RATE) * res["visible"]))
+    rate = BUSY_SCAN_RATE if busy else SCAN_RATE
+    allowed = max(1, int((1.0 - rate) * res["visible"]))
     assert len(res["missed"]) <= allowed, f"{label}: missed {len(res['missed'])} {res['missed']}"
     assert res["rms"] <= FACTOR * res["crb_rms"], (
         f"{label}: rms {res['rms']:.4f} px > {FACTOR} x CRB {res['crb_rms']:.4f} px")
     if res["cnr_min"] >= 20 and res["line_px"] >= 2.0:
         assert res["rms"] <= 0.03, f"{label}: rms {res['rms']:.4f} px > 0.03 px"
-
-
-def gap(scene: str, res: dict) -> bool:
-    """Renders in the documented open gap of point 6: busy scenes (sharp scene edges under or
-    along the arms of a few crosses bias them by 0.01-0.15 px; ``detect`` takes the joint scene
-    estimate there, which meets every criterion on 30 of the 32)."""
-    return scene == "busy"
 
 
 def _log(label: str, res: dict) -> None:
@@ -218,20 +214,7 @@ def test_detection_accuracy_sweep(label, cam, kw, seed, record_property):
     # the pooled detection rate of the run (issue 3 point 6: >= 99.5 % of the visible
     # crosses), busy renders included, is checked over all cases by conftest.py
     record_property(POOLED_RATE_KEY, (res["visible"], res["measured"]))
-    scene = kw.get("scene", "texture")
-    if not gap(scene, res):
-        check(res, label)
-        return
-    # The open gap: 0 wrong row/col and 0 claimed crosses are required as everywhere; the
-    # detection rate and RMS/CRB criteria of issue 3 point 6 are not yet met on every busy
-    # render (docs/accuracy.md "Mark detection"): reported as xfail with the figures, never
-    # silently passed.
-    assert not res["wrong"], f"{label}: wrong row/col {res['wrong']}"
-    assert not res["claimed"], f"{label}: claimed where not visible {res['claimed']}"
-    try:
-        check(res, label)
-    except AssertionError as exc:
-        pytest.xfail(f"open gap, issue 3 point 6 not met: {str(exc).splitlines()[0]}")
+    check(res, label, busy=kw.get("scene") == "busy")
 
 
 def test_render_crb_matches_flat_bound():

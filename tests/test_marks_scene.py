@@ -80,7 +80,9 @@ def test_joint_scene_removes_the_pull_of_an_edge_along_the_bars():
     det = detect(sc, "rollei-6006", scene="joint")
     assert det.scene == "joint"
     e_joint = _errors(det, truth)
-    assert len(e_open) == len(e_joint) == 121
+    # the opening's crosses are all pulled alike, so none departs from its neighbours; of the
+    # joint's, the outlier test may reject the worst (R0C7, 0.15 px off, 5 sigma)
+    assert len(e_open) == 121 and len(e_joint) >= 120
     rx_open = float(np.sqrt(np.mean(e_open[:, 0] ** 2)))
     rx_joint = float(np.sqrt(np.mean(e_joint[:, 0] ** 2)))
     assert rx_open > 0.15  # the pull exists

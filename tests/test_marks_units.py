@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -281,3 +283,73 @@ def test_measure_retry_holds_the_accepted_marks_median_blur():
     assert np.ptp(f.s[1:]) > 1e-4  # the first pass estimates each mark's blur
     g = measure(sc, shape, xy, A, 1.3, 0.5, sign, blur=1.3)
     assert np.allclose(g.s, 1.3)
+
+
+def _outlier_case(seed, sigma, extra=0.0):
+    """Rollei reseau at 600 dpi: truth through a homography and a smooth bend, measured with
+    per-cross noise ``sigma`` (121,) px plus ``extra`` px of noise no sigma reports (a
+    deformation the local polynomial does not follow). Returns film, xy, H, sigma."""
+    rng = np.random.default_rng(seed)
+    film = load_camera("rollei-6006").reseau.film()
+    ppm = 600 / 25.4
+    H = np.array([[ppm, 0.02, 700.0], [0.01, -ppm, 680.0], [1e-6, 2e-6, 1.0]])
+    xy = grid.apply_h(H, film)
+    xy += 0.4 * np.stack([np.sin(film[:, 0] / 15.0), np.cos(film[:, 1] / 20.0)], 1)
+    xy += rng.normal(size=xy.shape) * np.hypot(sigma, extra)[:, None]
+    return film, xy, H, sigma
+
+
+def test_departure_model_recovers_the_two_variance_terms():
+    from softplot.marks.detect import _departure_model, _expected_departure
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    sg = rng.uniform(0.02, 0.2, n)
+    edge = rng.random(n) < 0.3
+    a, b = np.where(edge, 3.0, 2.0), np.where(edge, 0.02, 0.005)
+    dev = np.sqrt(a * sg**2 + b) / np.sqrt(2.0) * np.hypot(*rng.normal(size=(2, n)))
+    dev[:40] += 2.0  # outliers are left out of the fit
+    coef = _departure_model(dev, sg, edge)
+    assert np.allclose(coef[:, 0], [3.0, 2.0], rtol=0.15), coef
+    assert np.allclose(coef[:, 1], [0.02, 0.005], rtol=0.15), coef
+    assert np.allclose(_expected_departure(coef, sg[:3], edge[:3]), np.sqrt(a * sg**2 + b)[:3],
+                       rtol=0.1)
+
+
+def test_outlier_test_holds_a_precise_cross_to_its_own_sigma(monkeypatch):
+    """Over a busy scene most crosses are imprecise and the departures' spread is large; a
+    precise cross pulled by 0.4 px (13 of its own sigmas) hides inside 3 spreads (0.5 px).
+    The departure model (its own sigma and the prediction's error, which the neighbours'
+    noise sets here: about 0.09 px) finds it; without it (OUTLIER_K huge) it is kept."""
+    D = importlib.import_module("softplot.marks.detect")  # the module, not the function
+
+    sigma = np.full(121, 0.12)
+    precise = np.arange(13, 121, 5)
+    sigma[precise] = 0.03
+    film, xy, H, sigma = _outlier_case(2, sigma)
+    bad = 58  # an inner cross (row 5, col 3), precise
+    assert bad in precise
+    xy[bad] += (0.4, 0.0)
+
+    def run():
+        st, rs = ["measured"] * 121, [""] * 121
+        floor = np.full(121, 0.05)
+        D._reject_outliers(film, xy.copy(), st, rs, H, sigma, floor_px=floor)
+        return {i for i, s in enumerate(st) if s == "rejected"}
+
+    assert run() == {bad}
+    monkeypatch.setattr(D, "OUTLIER_K", 1e6)
+    assert bad not in run()
+
+
+def test_outlier_test_keeps_crosses_whose_departures_their_sigma_does_not_explain():
+    """Sharp crosses (sigma 0.001 px) under a deformation the local cubic does not follow
+    (0.03 px): the departures are 30-100 sigmas, and none is an outlier (the shared term of the
+    model carries them)."""
+    D = importlib.import_module("softplot.marks.detect")  # the module, not the function
+
+    film, xy, H, sigma = _outlier_case(3, np.full(121, 0.001), extra=0.03)
+    st, rs = ["measured"] * 121, [""] * 121
+    _, _, _, coef = D._reject_outliers(film, xy, st, rs, H, sigma, floor_px=np.full(121, 0.02))
+    assert st.count("rejected") == 0
+    assert np.all(np.sqrt(coef[:, 1]) > 0.03), coef  # the shared term, not the sigma

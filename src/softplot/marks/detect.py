@@ -24,7 +24,9 @@ Pipeline for a reseau camera (pixel system throughout, film mm for the certifica
    neighbours' affine and blur held (:func:`_shape_from_neighbours`);
 6. the global projective model refitted to the measured crosses; a cross whose residual
    departs from its neighbours' (a smooth film deformation moves neighbours alike) by more than
-   a robust threshold is "rejected"; rejected and refused crosses are fitted again from the
+   a robust threshold, or by more than :data:`OUTLIER_K` times what its own sigma and the
+   prediction's error lead one to expect (:func:`_departure_model`), is "rejected";
+   rejected and refused crosses are fitted again from the
    neighbours' prediction, once without each half-arm (:func:`_rescue`); measured crosses
    that lie farther than :data:`MAX_GRID_RMS_MM` (rms) off any projective grid are not a
    reseau (an error).
@@ -38,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import nnls
 from scipy.spatial import cKDTree
 
 from softplot.camera import Camera, load_camera
@@ -61,6 +64,10 @@ OUTLIER_FLOOR_INNER = (0.05, 0.0005)
 #: a reseau's measured crosses lie within this (film mm, rms) of a projective grid: three
 #: times the largest film deformation of issue 3 (100 um); more is not a reseau
 MAX_GRID_RMS_MM = 0.3
+#: a departure from the neighbours' prediction beyond this many times its expected size
+#: (:func:`_departure_model`: from the mark's own sigma and the scan's prediction error) is
+#: an outlier (for a Gaussian departure a chance of exp(-2.75^2) = 5e-4 per mark)
+OUTLIER_K = 2.75
 #: the scene models of :func:`detect` (``scene=``)
 SCENE_MODELS = ("auto", "opening", "joint")
 #: refits with the joint scene estimate (:func:`softplot.marks.measure._refit_scene`; the
@@ -418,18 +425,18 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
     floor_px = np.where(_outline(film), max(0.1, OUTLIER_FLOOR_MM * ppm),
                         max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
-    Hm, residual, rms = _reject_outliers(film, xy, status, reason, g.H, sigma,
-                                         floor_px=floor_px)
+    Hm, residual, rms, dep = _reject_outliers(film, xy, status, reason, g.H, sigma,
+                                              floor_px=floor_px)
     A_fit = A0.copy()
     A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
     fitted = np.zeros(N, bool)
     fitted[idx] = True
     if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
                init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv,
-               blur=_held_blur(fine), fitted=fitted):
+               blur=_held_blur(fine), fitted=fitted, departure=dep):
         sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-        Hm, residual, rms = _reject_outliers(film, xy, status, reason, Hm, sigma,
-                                             floor_px=floor_px)
+        Hm, residual, rms, _ = _reject_outliers(film, xy, status, reason, Hm, sigma,
+                                                floor_px=floor_px)
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -701,11 +708,59 @@ def _local_prediction(film, r, k_max=16, sigma=None):
     return out
 
 
-def _outlier_threshold(spread, floor, sigma):
+def _outlier_threshold(spread, floor, sigma, expected=None):
     """Largest departure (px) from the neighbours' prediction that is not an outlier:
     ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s`` the departures' robust spread, ``sigma``
-    the mark's own precision); the outlier test and the rescue share it."""
-    return np.maximum(np.maximum(3.0 * spread, floor), np.minimum(4.5 * spread, 4.0 * sigma))
+    the mark's own precision); with ``expected`` (px, the departure's expected size for that
+    mark, :func:`_departure_model`) at most ``max(floor, OUTLIER_K x expected)``: a precise
+    mark among imprecise ones is held to its own precision. The outlier test and the rescue
+    share it. Arrays of one value per mark (or scalars)."""
+    thr = np.maximum(np.maximum(3.0 * spread, floor), np.minimum(4.5 * spread, 4.0 * sigma))
+    if expected is None:
+        return thr
+    return np.minimum(thr, np.maximum(floor, OUTLIER_K * expected))
+
+
+def _departure_model(dev, sigma, edge, iterations=6):
+    """Coefficients of the expected squared departure of a mark from its neighbours'
+    prediction, ``a sigma^2 + b``: ``a`` scales the mark's own variance (``sigma`` px from LSM,
+    which a busy scene makes optimistic), ``b`` (px^2) is what every mark shares (the
+    prediction's error: its neighbours' noise and the deformation the local polynomial does
+    not follow).
+
+    ``dev`` (M,) px departures, ``sigma`` (M,) px, ``edge`` (M,) bool (the grid's outline,
+    extrapolated: its own ``a, b`` when both it and the inside have 8 marks or more). Fitted
+    by non-negative least squares on ``dev^2``, weighted by the model's inverse square (the
+    variance of a squared Gaussian departure grows with its mean); departures beyond 3 times
+    the model's size are left out and the fit repeated. On a clean scan ``b`` dominates and
+    the test is the spread's; over a busy scene it holds a precise cross to its own sigma.
+    Returns (2, 2): rows outline, inside; columns ``a``, ``b``
+    (:func:`_expected_departure` evaluates it).
+    """
+    d2 = np.asarray(dev, float) ** 2
+    s2 = np.nan_to_num(np.asarray(sigma, float), nan=1.0) ** 2
+    edge = np.asarray(edge, bool)
+    both = min(edge.sum(), (~edge).sum()) >= 8
+    coef = np.empty((2, 2))
+    for row, grp in enumerate((edge, ~edge) if both else (np.ones_like(edge),) * 2):
+        a, b = 1.0, float(np.median(d2[grp])) + 1e-12
+        for _ in range(iterations):
+            mod = a * s2[grp] + b
+            keep = d2[grp] <= 9.0 * mod
+            wt = 1.0 / np.maximum(mod[keep], 1e-24)
+            M = np.stack([s2[grp][keep], np.ones(int(keep.sum()))], 1) * wt[:, None]
+            (a, b), _ = nnls(M, d2[grp][keep] * wt)
+            b = max(float(b), 1e-12)
+        coef[row] = a, b
+    return coef
+
+
+def _expected_departure(coef, sigma, edge):
+    """Expected departure (px) of marks with precision ``sigma`` (px) on the outline
+    (``edge`` True) or inside the grid, from :func:`_departure_model`'s ``coef``."""
+    c = coef[np.where(np.asarray(edge, bool), 0, 1)]
+    sg = np.nan_to_num(np.asarray(sigma, float), nan=1.0)
+    return np.sqrt(c[..., 0] * sg**2 + c[..., 1])
 
 
 def _spread(dev, edge):
@@ -725,7 +780,7 @@ def _outline(film):
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None):
+            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None):
     """Measure rejected and refused crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
@@ -739,8 +794,9 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
     direction alone, and the cross's precision would drop several times. A fit that passes
     the acceptance tests and lies within the outlier test's own threshold of that prediction
     is a measurement of the cross by its clean parts (of several such, the best-correlated).
-    The blur is held at ``blur`` (px) when given. A cross that was not measured at all is
-    predicted from the measured ones alone.
+    The blur is held at ``blur`` (px) when given; ``departure``, the outlier test's
+    :func:`_departure_model`, tightens that threshold as it does the test's. A cross that
+    was not measured at all is predicted from the measured ones alone.
     Modifies the arrays in place; returns whether any cross was recovered.
     """
     st = np.array(status)
@@ -790,7 +846,9 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
             sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]
-            thr = _outlier_threshold(sp, fl, sg)
+            exp = (None if departure is None
+                   else _expected_departure(departure, sg, edge[rej[grp]]))
+            thr = _outlier_threshold(sp, fl, sg, exp)
             d = np.hypot(*(f2.xy - target[grp]).T)
             good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
             for j in np.where(good)[0]:
@@ -812,12 +870,18 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     it; ``sigma``: the mark's own precision; ``floor`` (px, scalar or one per mark): on the
     outline 0.1 px or :data:`OUTLIER_FLOOR_MM` on the film, inside
     :data:`OUTLIER_FLOOR_INNER`, whichever is larger) is an
-    outlier (a mark locked onto something else, or pulled by a scratch along an arm). The
-    worst one is rejected and the test repeated. Modifies ``status`` and ``reason`` in place.
+    outlier (a mark locked onto something else, or pulled by a scratch along an arm); and
+    beyond ``OUTLIER_K`` times the departure expected from the mark's own sigma and the
+    prediction's error (:func:`_departure_model`, fitted to the departures before any
+    rejection), whichever is smaller, but never below the floor. The worst one is rejected
+    and the test repeated. Modifies ``status`` and ``reason`` in place. Returns the global
+    model (3, 3), the residuals (M, 2) px (NaN where not measured), their rms (px) and the
+    departure model (None with fewer than 8 measured marks).
     """
     Hm = H0
     n_max = max(1, len(film) // 10)
     edge = _outline(film)
+    coef = None
     for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
         if m.sum() < 8:
@@ -831,8 +895,10 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         # deformation makes worse than the interpolation inside: each group its own spread
         spread = _spread(dev, edge[idx])
         sg = np.nan_to_num(sigma[idx], nan=1.0)
+        if coef is None:  # from all measured marks, before any is rejected
+            coef = _departure_model(dev, sg, edge[idx])
         fl = np.broadcast_to(floor_px, (len(film),))[idx]
-        thr = _outlier_threshold(spread, fl, sg)
+        thr = _outlier_threshold(spread, fl, sg, _expected_departure(coef, sg, edge[idx]))
         bad = dev > thr
         if not bad.any():
             break
@@ -845,4 +911,4 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     r = xy - grid.apply_h(Hm, film)
     residual = np.where(m[:, None], r, np.nan)
     rms = float(np.sqrt(np.mean(np.sum(r[m] ** 2, 1)))) if m.any() else float("nan")
-    return Hm, residual, rms
+    return Hm, residual, rms, coef
