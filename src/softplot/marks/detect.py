@@ -740,19 +740,22 @@ def _departure_model(dev, sigma, edge, iterations=6):
     d2 = np.asarray(dev, float) ** 2
     s2 = np.nan_to_num(np.asarray(sigma, float), nan=1.0) ** 2
     edge = np.asarray(edge, bool)
-    both = min(edge.sum(), (~edge).sum()) >= 8
-    coef = np.empty((2, 2))
-    for row, grp in enumerate((edge, ~edge) if both else (np.ones_like(edge),) * 2):
-        a, b = 1.0, float(np.median(d2[grp])) + 1e-12
+    def fit(d2, s2):
+        a, b = 1.0, float(np.median(d2)) + 1e-12
         for _ in range(iterations):
-            mod = a * s2[grp] + b
-            keep = d2[grp] <= 9.0 * mod
+            mod = a * s2 + b
+            keep = d2 <= 9.0 * mod
+            if keep.sum() < 2:
+                break
             wt = 1.0 / np.maximum(mod[keep], 1e-24)
-            M = np.stack([s2[grp][keep], np.ones(int(keep.sum()))], 1) * wt[:, None]
-            (a, b), _ = nnls(M, d2[grp][keep] * wt)
+            M = np.stack([s2[keep], np.ones(int(keep.sum()))], 1) * wt[:, None]
+            (a, b), _ = nnls(M, d2[keep] * wt)
             b = max(float(b), 1e-12)
-        coef[row] = a, b
-    return coef
+        return a, b
+
+    if min(edge.sum(), (~edge).sum()) >= 8:
+        return np.array([fit(d2[edge], s2[edge]), fit(d2[~edge], s2[~edge])])
+    return np.tile(fit(d2, s2), (2, 1))  # too few in a group: one model for both
 
 
 def _expected_departure(coef, sigma, edge):
