@@ -528,3 +528,28 @@ def test_cli_info_console_script_no_traceback(tmp_path):
     assert r.stdout == ""
     assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
     assert r.stderr.startswith(f"softplot: error: {bad}: ")
+
+
+def test_fingerprint_names_content_and_catches_a_changed_byte(tmp_path):
+    from softplot.errors import ScanError
+    from softplot.io import check_fingerprint, fingerprint
+
+    a = tmp_path / "a.tif"
+    a.write_bytes(bytes(range(256)) * 100)
+    fp = fingerprint(a)
+    assert fp["name"] == "a.tif" and fp["size_bytes"] == 25600
+    assert len(fp["sha256"]) == 64
+    check_fingerprint(a, fp)  # same content: no error
+    b = tmp_path / "moved.tif"
+    b.write_bytes(a.read_bytes())
+    check_fingerprint(b, fp)  # moved or renamed but the same content: accepted
+    data = bytearray(a.read_bytes())
+    data[1000] ^= 1
+    b.write_bytes(bytes(data))
+    with pytest.raises(ScanError, match="sha256 mismatch"):
+        check_fingerprint(b, fp)
+    b.write_bytes(b"short")
+    with pytest.raises(ScanError, match="5 bytes"):
+        check_fingerprint(b, fp)
+    with pytest.raises(ScanError, match="not found"):
+        check_fingerprint(tmp_path / "gone.tif", fp)

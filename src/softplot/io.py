@@ -46,6 +46,7 @@ extension or sample type, zero-size image, a float image with no finite pixel) r
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import struct
@@ -62,6 +63,8 @@ __all__ = [
     "load_scan",
     "save_tiff",
     "scan_kind",
+    "fingerprint",
+    "check_fingerprint",
     "BT601",
     "TIFF_EXTENSIONS",
     "PNG_EXTENSIONS",
@@ -743,3 +746,55 @@ def save_tiff(
             raise ScanError(f"{p}: cannot write TIFF: {_one_line(exc)}") from None
         raise
     return p
+
+
+# ---------------------------------------------------------------------------------------------
+# fingerprints: what a result was measured on
+
+
+def fingerprint(path: str | Path, *, chunk: int = 1 << 22) -> dict:
+    """The identity of a file's content: ``{"name", "size_bytes", "sha256"}``.
+
+    ``name`` is the file name (no folder: a scan may move with its results), ``sha256`` the
+    hex digest of its bytes, read in ``chunk``-byte pieces (a gigabyte scan costs about a
+    second and no memory). Detections, film corrections and sessions record this of the scan
+    they were made on, so a result is never applied to another scan by mistake.
+    """
+    p = Path(path)
+    h = hashlib.sha256()
+    try:
+        with open(p, "rb") as fh:
+            for block in iter(lambda: fh.read(chunk), b""):
+                h.update(block)
+            size = fh.tell()
+    except FileNotFoundError:
+        raise ScanError(f"{p}: file not found") from None
+    except IsADirectoryError:
+        raise ScanError(f"{p}: is a directory, not a file") from None
+    except OSError as exc:
+        raise ScanError(f"{p}: cannot read: {_one_line(exc)}") from None
+    return {"name": p.name, "size_bytes": int(size), "sha256": h.hexdigest()}
+
+
+def check_fingerprint(path: str | Path, expected: dict, *, what: str = "this result") -> None:
+    """Raise :class:`ScanError` (one line naming both) unless ``path`` has the content that
+    ``expected`` (a :func:`fingerprint`) records. A size mismatch is caught without hashing."""
+    p = Path(path)
+    want = expected.get("sha256")
+    if not want:
+        return
+    try:
+        size = p.stat().st_size
+    except FileNotFoundError:
+        raise ScanError(f"{p}: file not found ({what} was made on {expected.get('name')})") \
+            from None
+    if expected.get("size_bytes") is not None and size != int(expected["size_bytes"]):
+        raise ScanError(
+            f"{p}: not the scan {what} was made on ({expected.get('name')}, "
+            f"{expected['size_bytes']} bytes; this file has {size} bytes)"
+        )
+    if fingerprint(p)["sha256"] != want:
+        raise ScanError(
+            f"{p}: not the scan {what} was made on ({expected.get('name')}: its content "
+            "differs, sha256 mismatch)"
+        )
