@@ -15,7 +15,7 @@ from softplot.pipeline.demo import MARKER, DemoConfig, prepare_out_dir, run_demo
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     cfg = DemoConfig(dpi=600, interval=20.0, vertices=24, tie_grid=4, n_check=6)
-    return out, run_demo(out, cfg, progress=False, write_scans=False)
+    return out, run_demo(out, cfg, progress=False, write_scans=True)
 
 
 def test_demo_accuracy(demo):
@@ -83,3 +83,29 @@ def test_demo_cli_bad_out(tmp_path, capsys):
     assert f.read_text() == "user data"
     err = capsys.readouterr().err
     assert "a-file" in err and "Traceback" not in err
+
+
+def test_demo_writes_a_session_ready_to_view(demo):
+    """OUT/session: the demo's scans (checked by content), film corrections as data, the
+    oriented model and the contours it traced; a scan pixel maps to the photo and back."""
+    from softplot.pipeline.session import Session
+
+    out, r = demo
+    s = Session.resume(out / "session")
+    try:
+        assert len(s.features) == r.contours
+        assert s.mode == "contour"
+        for side in ("left", "right"):
+            assert s.scan_path(side) == (out / f"{side}.tif").resolve()
+            m = s.photo_map(side)
+            px = np.array([[100.25, 200.5], [700.0, 650.75]])
+            back = m.photo_to_pixel(m.pixel_to_photo(px))
+            assert np.max(np.abs(back - px)) < 1e-6
+        # a recorded contour vertex, seen in the right scan through the session's model and
+        # film correction, is restituted back onto itself at the contour height
+        XYZ = s.features[0].vertices[:3]
+        instr = s.model.right.photo_to_film(s.model.right.project(XYZ))
+        res = s.model.contour(s.model.right.film_to_photo(instr), float(XYZ[0, 2]))
+        assert np.max(np.abs(res.XYZ - XYZ)) < 1e-6
+    finally:
+        s.close()

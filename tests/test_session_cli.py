@@ -9,7 +9,7 @@ import pytest
 from softplot.cli import main
 from softplot.geometry.collinearity import project
 from softplot.motors.simulator import GrblSimulator
-from softplot.stereo import Session
+from softplot.pipeline.session import Session
 
 
 def _run(argv, capsys):

@@ -12,20 +12,29 @@ import textwrap
 import numpy as np
 import pytest
 
+from session_helpers import affine_scan_map, corner_camera
 from softplot.errors import SoftplotError
 from softplot.export.features import Feature
 from softplot.motors import AxisConfig, MotorAlarm, VirtualMotors
-from softplot.stereo import OrientedPhoto, PlotterHalted, Session, StereoModel
+from softplot.pipeline.session import Session
+from softplot.stereo import OrientedPhoto, PlotterHalted, StereoModel
 from softplot.synthetic.stereo import aerial_pair
 
 FINE = AxisConfig(resolution_mm=1e-6, min_mm=-150, max_mm=150, max_speed_mm_s=1e9)
 
 
 def _model(seed=21, corrections=True):
+    """The aerial pair; with ``corrections`` its film deformation is a film correction stored
+    as data (an affine fitted to four fiducials, exact to rounding)."""
     t = aerial_pair(seed=seed, deform=corrections)
+    t.x0[:] = 0.0  # the film correction reduces to the principal point
+    t.y0[:] = 0.0
     photos = []
     for k in range(2):
-        f2p, p2f = t.corrections(k) if corrections else (None, None)
+        f2p = p2f = None
+        if corrections:
+            m = affine_scan_map(corner_camera(t.c[k]), t.deform[k])
+            f2p, p2f = m, m.inverse
         photos.append(
             OrientedPhoto(t.X0[k], t.angles[k], t.c[k], t.x0[k], t.y0[k], f2p, p2f, name=f"p{k}")
         )
@@ -98,7 +107,7 @@ def test_session_errors(tmp_path):
         OrientedPhoto([0, 0, 10], [0, 0, 0], 50, to_photo=lambda xy: xy),
         OrientedPhoto([5, 0, 10], [0, 0, 0], 50),
     )
-    with pytest.raises(SoftplotError, match="cannot be saved"):
+    with pytest.raises(SoftplotError, match="stores film corrections as data"):
         Session.create(tmp_path / "lam", bad)
 
 
@@ -144,7 +153,8 @@ WRITER = textwrap.dedent(
     """
     import sys
     from softplot.export.features import Feature
-    from softplot.stereo import OrientedPhoto, Session, StereoModel
+    from softplot.pipeline.session import Session
+    from softplot.stereo import OrientedPhoto, StereoModel
     model = StereoModel(OrientedPhoto([0, 0, 1000], [0, 0, 0], 150),
                         OrientedPhoto([400, 0, 1000], [0, 0, 0], 150))
     s = Session.create(sys.argv[1], model)

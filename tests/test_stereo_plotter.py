@@ -177,17 +177,20 @@ def test_bad_plotter_use():
 def test_with_interior_orientation_of_a_certificate(tmp_path):
     """Film corrections from softplot.orientation.interior (Wild RC10 certificate, radial
     distortion table): the plotter works on film coordinates and still lands on the truth;
-    the corrections survive a session save/resume (pickled bound methods)."""
+    the corrections survive a session save/resume (as data: an identity film correction on
+    the fiducials, then the certificate's interior orientation)."""
+    from session_helpers import affine_scan_map
     from softplot.camera import load_camera
     from softplot.orientation.interior import InteriorOrientation
-    from softplot.stereo import Session
+    from softplot.pipeline.session import Session
 
     io = InteriorOrientation("wild-rc10")
     t = aerial_pair(seed=19, c=load_camera("wild-rc10").c, deform=False)
     t.x0[:] = 0.0
     t.y0[:] = 0.0
+    m = affine_scan_map("wild-rc10")
     photos = [
-        OrientedPhoto(t.X0[k], t.angles[k], t.c[k], 0.0, 0.0, io.film_to_photo, io.photo_to_film)
+        OrientedPhoto(t.X0[k], t.angles[k], t.c[k], 0.0, 0.0, m, m.inverse)
         for k in range(2)
     ]
     model = StereoModel(*photos)

@@ -14,14 +14,16 @@ a scan onto the calibrated film grid (:func:`resample`, :func:`write_resampled`)
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from softplot.camera import Camera, load_camera
+from softplot.camera import Camera, load_camera, parse_certificate, to_toml
 from softplot.errors import SoftplotError
 from softplot.geometry.crossval import CrossValidation, cross_validate
 from softplot.geometry.mesh import FLAG_NAMES, FLAG_OUTSIDE_IMAGE
@@ -47,6 +49,11 @@ __all__ = [
     "write_resampled",
     "Resampled",
     "METHODS",
+    "ScanFrame",
+    "ScanPhotoMap",
+    "save_correction",
+    "load_correction",
+    "CORRECTION_FORMAT",
 ]
 
 
@@ -170,6 +177,8 @@ class FilmCorrection:
         self.method = self.model.method
         self.interior = InteriorOrientation(self.camera)
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+        #: the scan this correction was made on (:func:`softplot.io.fingerprint`), if known
+        self.scan: dict | None = None
 
     @classmethod
     def from_detection(cls, camera, detection: dict, method: str = "mesh") -> "FilmCorrection":
@@ -178,7 +187,10 @@ class FilmCorrection:
         size = None
         if detection.get("width") and detection.get("height"):
             size = (int(detection["width"]), int(detection["height"]))
-        return cls(camera, marks, method, size)
+        fc = cls(camera, marks, method, size)
+        if isinstance(detection.get("scan"), dict):
+            fc.scan = detection["scan"]
+        return fc
 
     @property
     def bounds(self):
@@ -235,6 +247,187 @@ class FilmCorrection:
 
     def describe(self) -> str:
         return f"{self.model.describe()}; interior: {self.interior.describe()}"
+
+    # ----------------------------------------------------------------- as data
+    def to_data(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """This correction as plain data: a JSON-able dict and named float64 arrays.
+
+        What is stored is what defines the correction: the certificate (TOML text, read back
+        unchanged), the concrete method and the reference marks (calibrated film mm and
+        measured pixel px, as arrays). :meth:`from_data` rebuilds the model from them by the
+        same deterministic fit, so the numbers it gives are bit-identical. Nothing executable
+        is stored (compare a pickle). Every array field of :class:`ReferenceMarks` is stored,
+        so marks that gain fields (covariances) keep them.
+        """
+        arrays: dict[str, np.ndarray] = {}
+        fields: dict[str, object] = {}
+        for f in dataclasses.fields(self.marks):
+            v = getattr(self.marks, f.name)
+            if isinstance(v, np.ndarray):
+                arrays[f"marks.{f.name}"] = np.ascontiguousarray(v)
+            elif v is None:
+                fields[f.name] = None
+            else:
+                fields[f.name] = list(v) if isinstance(v, tuple) else v
+        meta = {
+            "format": CORRECTION_FORMAT,
+            "version": CORRECTION_VERSION,
+            "method": self.method,
+            "camera": {"name": self.camera.name, "certificate": to_toml(self.camera)},
+            "image_size": None if self.image_size is None else list(self.image_size),
+            "marks": fields,
+            "scan": getattr(self, "scan", None),
+        }
+        return meta, arrays
+
+    @classmethod
+    def from_data(cls, meta: dict, arrays, where: str = "film correction") -> "FilmCorrection":
+        """Rebuild a correction from :meth:`to_data`'s dict and arrays (any mapping of name ->
+        array, e.g. an ``np.load(..., allow_pickle=False)`` file); errors name ``where``."""
+        if meta.get("format") != CORRECTION_FORMAT:
+            raise SoftplotError(f"{where}: not a softplot film correction")
+        if int(meta.get("version", 0)) > CORRECTION_VERSION:
+            raise SoftplotError(
+                f"{where}: written by a newer softplot (format version {meta['version']})"
+            )
+        try:
+            cam = parse_certificate(meta["camera"]["certificate"], where=f"{where}: certificate")
+            kw = {}
+            names = {f.name for f in dataclasses.fields(ReferenceMarks)}
+            for name, v in meta.get("marks", {}).items():
+                if name in names:
+                    kw[name] = tuple(v) if isinstance(v, list) else v
+            for key in arrays.keys() if hasattr(arrays, "keys") else arrays.files:
+                if key.startswith("marks.") and key[6:] in names:
+                    kw[key[6:]] = np.array(arrays[key], dtype=float)
+            marks = ReferenceMarks(**kw)
+            fc = cls(cam, marks, meta["method"], meta.get("image_size"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SoftplotError(f"{where}: incomplete or malformed ({exc})") from None
+        fc.scan = meta.get("scan")
+        return fc
+
+
+#: ``format`` of a film correction stored as data (:func:`save_correction`)
+CORRECTION_FORMAT = "softplot-film-correction"
+CORRECTION_VERSION = 1
+
+
+def save_correction(correction: "FilmCorrection", path: str | Path,
+                    extra: dict | None = None) -> Path:
+    """Write ``correction`` as ``PATH`` (JSON, ``.json``) and ``PATH`` with ``.npz`` (its
+    arrays, no pickles): the form sessions and projects keep film corrections in.
+
+    ``extra`` entries (e.g. the scan frame) are stored beside the correction's own data.
+    Both files are written atomically (a temporary file, then renamed).
+    """
+    meta, arrays = correction.to_data()
+    if extra:
+        meta.update(extra)
+    p = Path(path).with_suffix(".json")
+    npz = p.with_suffix(".npz")
+    meta["arrays"] = npz.name
+    tmp = npz.with_name(f".{npz.name}.part")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    os.replace(tmp, npz)
+    tmp = p.with_name(f".{p.name}.part")
+    tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, p)
+    return p
+
+
+def load_correction(path: str | Path) -> tuple["FilmCorrection", dict]:
+    """Read what :func:`save_correction` wrote: the correction and the whole JSON dict.
+
+    The arrays are read with ``allow_pickle=False``: a film correction is data, never code.
+    """
+    p = Path(path)
+    try:
+        meta = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SoftplotError(f"{p}: film correction not found") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise SoftplotError(f"{p}: not a readable JSON file ({exc})") from None
+    if not isinstance(meta, dict):
+        raise SoftplotError(f"{p}: not a softplot film correction")
+    npz = p.with_name(str(meta.get("arrays") or p.with_suffix(".npz").name))
+    if npz.name != Path(npz.name).name or npz.parent != p.parent:
+        raise SoftplotError(f"{p}: its arrays must lie beside it")
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise SoftplotError(f"{npz}: film correction arrays not found") from None
+    except (OSError, ValueError) as exc:
+        raise SoftplotError(f"{npz}: unreadable film correction arrays ({exc})") from None
+    return FilmCorrection.from_data(meta, arrays, where=str(p)), meta
+
+
+@dataclass(frozen=True)
+class ScanFrame:
+    """Pixel px <-> instrument mm of one scan: the plotter's carriages move over the scan.
+
+    Instrument mm: x right, y up, origin at the centre of the scan,
+    ``x = (col - (W - 1) / 2) * pixel_mm``, ``y = ((H - 1) / 2 - row) * pixel_mm``
+    (pixel system: x right = column, y down = row, (0, 0) the centre of the top-left pixel).
+    """
+
+    width: int
+    height: int
+    pixel_mm: float
+
+    @classmethod
+    def of_scan(cls, width: int, height: int, dpi: float) -> "ScanFrame":
+        if not (dpi and dpi > 0):
+            raise SoftplotError("the scan's dpi is unknown: give it (--dpi)")
+        return cls(int(width), int(height), 25.4 / float(dpi))
+
+    def to_instrument(self, xy_px) -> np.ndarray:
+        """Pixel (N, 2) -> instrument mm (N, 2)."""
+        px = np.asarray(xy_px, float).reshape(-1, 2)
+        cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
+        return np.column_stack([(px[:, 0] - cx) * self.pixel_mm, (cy - px[:, 1]) * self.pixel_mm])
+
+    def to_pixel(self, xy_mm) -> np.ndarray:
+        """Instrument mm (N, 2) -> pixel (N, 2)."""
+        xy = np.asarray(xy_mm, float).reshape(-1, 2)
+        cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
+        return np.column_stack([xy[:, 0] / self.pixel_mm + cx, cy - xy[:, 1] / self.pixel_mm])
+
+    def to_dict(self) -> dict:
+        return {"width": self.width, "height": self.height, "pixel_mm": self.pixel_mm}
+
+
+class ScanPhotoMap:
+    """Instrument mm <-> photo mm of one scan: its :class:`ScanFrame` and film correction.
+
+    The ``to_photo`` of a :class:`softplot.stereo.OrientedPhoto` whose carriage moves over a
+    scan: instrument mm -> pixel -> film mm (the correction model) -> photo mm (interior
+    orientation); :meth:`inverse` is its ``to_film``. Plain data (the frame, the correction,
+    the scan's path), so a session stores it without pickling.
+    """
+
+    def __init__(self, correction: FilmCorrection, frame: ScanFrame, scan_path=None):
+        self.correction = correction
+        self.frame = frame
+        self.scan_path = None if scan_path is None else Path(scan_path)
+
+    def __call__(self, xy_mm) -> np.ndarray:
+        """Instrument mm (N, 2) -> photo mm (N, 2)."""
+        return self.correction.pixel_to(self.frame.to_pixel(xy_mm), to="photo")[0]
+
+    def inverse(self, xy_mm) -> np.ndarray:
+        """Photo mm (N, 2) -> instrument mm (N, 2)."""
+        return self.frame.to_instrument(self.correction.to_pixel(xy_mm, frm="photo")[0])
+
+    def pixel_to_photo(self, xy_px) -> np.ndarray:
+        """Pixel (N, 2) -> photo mm (N, 2)."""
+        return self.correction.pixel_to(xy_px, to="photo")[0]
+
+    def photo_to_pixel(self, xy_mm) -> np.ndarray:
+        """Photo mm (N, 2) -> pixel (N, 2)."""
+        return self.correction.to_pixel(xy_mm, frm="photo")[0]
 
 
 def compare(camera, marks: ReferenceMarks, methods=None) -> CrossValidation:

@@ -50,23 +50,55 @@ def _motors(port: str | None, timeout: float):
     help="Fixed offset of the left plate, instrument mm (left film "
     "= main carriage + offset + DX, DY).",
 )
-def new(folder, photos_path, mode, height, left_offset):
-    """Start a session in FOLDER from an oriented pair."""
-    from softplot.stereo import OrientedPhoto, Session, StereoModel
+@click.option("--left-scan", type=click.Path(path_type=Path), default=None,
+              help="Scan of the left photo: the carriages then move over the scans "
+              "(instrument mm = scan mm from the scan's centre) and the film correction "
+              "takes them to photo mm.")
+@click.option("--right-scan", type=click.Path(path_type=Path), default=None,
+              help="Scan of the right photo (with --left-scan).")
+@click.option("--camera", default=None,
+              help="Camera certificate (built-in name or TOML path) of the scans.")
+@click.option("--left-detection", type=click.Path(path_type=Path), default=None,
+              help="Detection JSON of the left scan (softplot detect); detected now if absent.")
+@click.option("--right-detection", type=click.Path(path_type=Path), default=None,
+              help="Detection JSON of the right scan; detected now if absent.")
+@click.option("--method", default="mesh", show_default=True,
+              help="Film-correction method (see softplot correct compare).")
+@click.option("--dpi", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Scan resolution, dots per inch, when the files do not record it.")
+def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, camera,
+        left_detection, right_detection, method, dpi):
+    """Start a session in FOLDER from an oriented pair (and, optionally, its scans)."""
+    from softplot.pipeline.session import Session, scan_photo_map
+    from softplot.stereo import OrientedPhoto, StereoModel
 
     names, ph = _read_csv(photos_path, PHOTO_COLUMNS, "photos file")
     if len(names) != 2:
         raise SoftplotError(f"photos file {photos_path} needs exactly 2 rows (left, right)")
-    model = StereoModel(
-        *[
-            OrientedPhoto(r[0:3], np.deg2rad(r[3:6]), r[6], name=n)
-            for n, r in zip(names, ph, strict=True)
-        ]
-    )
     if mode == "contour" and height is None:
         raise SoftplotError("contour mode needs --height")
+    if (left_scan is None) != (right_scan is None):
+        raise SoftplotError("give both --left-scan and --right-scan, or neither")
+    maps = [None, None]
+    if left_scan is not None:
+        if camera is None:
+            raise SoftplotError("--left-scan/--right-scan need --camera")
+        maps = [
+            scan_photo_map(sc, camera, det, method=method, dpi=dpi)
+            for sc, det in ((left_scan, left_detection), (right_scan, right_detection))
+        ]
+    elif left_detection or right_detection:
+        raise SoftplotError("--left-detection/--right-detection need the scans (--left-scan ...)")
+    model = StereoModel(
+        *[
+            OrientedPhoto(r[0:3], np.deg2rad(r[3:6]), r[6], name=n,
+                          to_photo=m, to_film=None if m is None else m.inverse)
+            for n, r, m in zip(names, ph, maps, strict=True)
+        ]
+    )
     Session.create(folder, model, mode=mode, height=height, left_offset=left_offset).close()
-    click.echo(f"session created in {folder} ({mode})")
+    click.echo(f"session created in {folder} ({mode}"
+               + (", with scans" if maps[0] is not None else "") + ")")
 
 
 @command.command("trace")
@@ -103,7 +135,7 @@ def new(folder, photos_path, mode, height, left_offset):
 @click.option("--timeout", type=float, default=5.0, show_default=True)
 def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout):
     """Run the plotter over scripted operator input and record features in FOLDER."""
-    from softplot.stereo import Session
+    from softplot.pipeline.session import Session
 
     with _motors(port, timeout) as mot:
         s = Session.resume(folder, motors=mot)
@@ -144,7 +176,7 @@ def trace(folder, input_path, code, kind, mode, height, close_line, port, timeou
 @click.argument("folder", type=click.Path(path_type=Path))
 def resume(folder):
     """Re-open a session and summarise it (mode, features by code, faults)."""
-    from softplot.stereo import Session
+    from softplot.pipeline.session import Session
 
     s = Session.resume(folder)
     try:
@@ -167,17 +199,26 @@ def resume(folder):
 @click.argument("out", type=click.Path(path_type=Path))
 def export(folder, out):
     """Write the session's features to OUT (.dxf, .geojson or .csv)."""
-    from softplot.stereo import Session
+    from softplot.pipeline.session import Session
 
     s = Session.resume(folder)
     try:
-        own = {
-            (Path(folder) / n).resolve()
-            for n in ("session.json", "journal.jsonl", "corrections.pkl")
-        }
-        if out.resolve() in own:
+        if s.owns(out):
             raise SoftplotError(f"{out} would overwrite a session file: choose another path")
         s.export(out)
         click.echo(f"{len(s.features)} feature(s) -> {out}")
     finally:
         s.close()
+
+
+@command.command("upgrade")
+@click.argument("folder", type=click.Path(path_type=Path))
+def upgrade(folder):
+    """Convert a version-1 session in FOLDER (pickled film corrections) to version 2 (data).
+
+    Reads the old pickle with an unpickler that builds only softplot and NumPy objects and
+    keeps it as corrections.pkl.v1; upgrade only folders you trust.
+    """
+    from softplot.pipeline.session import upgrade_session
+
+    click.echo(f"upgraded: {upgrade_session(folder)}")

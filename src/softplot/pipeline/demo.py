@@ -311,43 +311,6 @@ def _points(pair, cfg: DemoConfig):
     return out
 
 
-class _ScanFrame:
-    """Pixel <-> instrument mm (scan mm, y up, origin at the scan centre) of one scan."""
-
-    def __init__(self, width: int, height: int, dpi: float):
-        self.p = 25.4 / float(dpi)
-        self.cx = (width - 1) / 2.0
-        self.cy = (height - 1) / 2.0
-
-    def to_instr(self, px: np.ndarray) -> np.ndarray:
-        px = np.asarray(px, float).reshape(-1, 2)
-        return np.column_stack([(px[:, 0] - self.cx) * self.p, (self.cy - px[:, 1]) * self.p])
-
-    def to_pixel(self, xy: np.ndarray) -> np.ndarray:
-        xy = np.asarray(xy, float).reshape(-1, 2)
-        return np.column_stack([xy[:, 0] / self.p + self.cx, self.cy - xy[:, 1] / self.p])
-
-
-class _InstrToPhoto:
-    """Instrument mm -> photo mm through the scan's film correction (picklable)."""
-
-    def __init__(self, frame: _ScanFrame, correction):
-        self.frame, self.correction = frame, correction
-
-    def __call__(self, xy):
-        return self.correction.pixel_to(self.frame.to_pixel(xy), to="photo")[0]
-
-
-class _PhotoToInstr:
-    """Photo mm -> instrument mm, the inverse of :class:`_InstrToPhoto`."""
-
-    def __init__(self, frame: _ScanFrame, correction):
-        self.frame, self.correction = frame, correction
-
-    def __call__(self, xy):
-        return self.frame.to_instr(self.correction.to_pixel(xy, frm="photo")[0])
-
-
 # ----------------------------------------------------------------------------- output folder
 
 
@@ -404,7 +367,7 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
     """
     from tqdm import tqdm
 
-    from softplot.correction import FilmCorrection
+    from softplot.correction import FilmCorrection, ScanFrame, ScanPhotoMap
     from softplot.geometry.rotation import angles_from_matrix, rotation_matrix
     from softplot.io import Scan
     from softplot.marks import detect
@@ -459,9 +422,10 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
         film_est = fc.pixel_to(tm.film_to_pixel(film_true), to="film")[0]
         err_um = 1000.0 * (film_est - film_true)
         inside = np.all(np.abs(film_true) <= 25.0, axis=1)
-        frame = _ScanFrame(image.shape[1], image.shape[0], cfg.dpi)
+        frame = ScanFrame.of_scan(image.shape[1], image.shape[0], cfg.dpi)
         scans.append(dict(image=image, truth=truth, tm=tm, det=dj, fc=fc, d=d, err_um=err_um,
-                          inside=inside, frame=frame, film_true=film_true))
+                          inside=inside, frame=frame, film_true=film_true,
+                          map=ScanPhotoMap(fc, frame)))
         bar.update(1)
 
     D = np.vstack([s["d"] for s in scans])
@@ -505,8 +469,8 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
         Mk = rotation_matrix(*ang) @ Ma
         photos.append(OrientedPhoto(
             Cobj, np.array(angles_from_matrix(Mk), float), cam.c, 0.0, 0.0,
-            to_photo=_InstrToPhoto(scans[k]["frame"], scans[k]["fc"]),
-            to_film=_PhotoToInstr(scans[k]["frame"], scans[k]["fc"]),
+            to_photo=scans[k]["map"],
+            to_film=scans[k]["map"].inverse,
             name=("left", "right")[k],
         ))
     stereo = StereoModel(photos[0], photos[1])
@@ -514,7 +478,7 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
 
     # ---- 5: contours through the plotter and the virtual motors
     bar.set_postfix_str(stages[3])
-    instr_tie = [scans[k]["frame"].to_instr(true_pixel(k, pts["tie"])) for k in range(2)]
+    instr_tie = [scans[k]["frame"].to_instrument(true_pixel(k, pts["tie"])) for k in range(2)]
     offset = tuple(np.median(instr_tie[0] - instr_tie[1], axis=0))
     ax = AxisConfig(resolution_mm=cfg.motor_resolution_mm, min_mm=-15.0, max_mm=15.0,
                     max_speed_mm_s=50.0)
@@ -528,7 +492,7 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
     for H in tqdm(heights, desc="contours", unit="contour", disable=not progress, leave=False):
         plotter.set_mode("contour", float(H))
         truth_line = pair.contour_truth(float(H), cfg.vertices)
-        right = scans[1]["frame"].to_instr(true_pixel(1, truth_line))
+        right = scans[1]["frame"].to_instrument(true_pixel(1, truth_line))
         plotter.begin("CONTOUR", interval=cfg.interval)
         for P, (X, Y) in zip(truth_line, right, strict=True):
             cyc = plotter.cycle(float(X), float(Y))
@@ -564,6 +528,7 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
     if out_dir is not None:
         from softplot.export.dxf import write_dxf
         from softplot.export.geojson import write_geojson
+        from softplot.io import fingerprint
         from softplot.synthetic.files import write_image
 
         o = res.outputs
@@ -575,9 +540,13 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
                 p = write_image(out_dir / f"{side}.tif", s["image"], cfg.dpi, "tif",
                                 overwrite=True, description=f"softplot demo {side} scan")
                 o[f"{side}_scan"] = str(p)
+                s["det"]["scan"] = s["fc"].scan = fingerprint(p)
+                s["map"].scan_path = Path(p)
                 dp = out_dir / f"{side}.detection.json"
                 dp.write_text(json.dumps(s["det"], indent=1) + "\n", encoding="utf-8")
                 o[f"{side}_detection"] = str(dp)
+        o["session"] = str(_write_session(out_dir / "session", stereo, feats, offset,
+                                          float(heights[0]) if len(heights) else None))
         o.update(_write_points(out_dir, pts, scans, true_pixel, measured_photo, stereo))
         res.seconds = time.perf_counter() - t_start
         o["report"] = str(_report(out_dir / "report.html", res, cfg, pair, scans, stereo,
@@ -591,6 +560,22 @@ def run_demo(out: str | Path | None, config: DemoConfig | None = None,
     bar.close()
     res.seconds = time.perf_counter() - t_start
     return res
+
+
+def _write_session(folder: Path, stereo, feats, offset, height) -> Path:
+    """The plotting session of the demo's model (its scans, film corrections, orientation and
+    the contours just traced), ready for ``softplot view`` and ``softplot plot``."""
+    import shutil
+
+    from softplot.pipeline.session import Session
+
+    if folder.exists():  # an earlier demo's session in the demo's own folder
+        shutil.rmtree(folder)
+    with Session.create(folder, stereo, mode="contour", height=height,
+                        left_offset=offset) as session:
+        for f in feats:
+            session.record(f)
+    return folder
 
 
 def _write_csv(path: Path, header: list[str], rows) -> str:

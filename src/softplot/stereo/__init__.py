@@ -1,4 +1,6 @@
-"""Stereo restitution: the stereo model, the four modes, the plotter loop and sessions.
+"""Stereo restitution: the stereo model, the four modes and the plotter loop.
+
+Plotting sessions (folders with a journal) are :mod:`softplot.pipeline.session`.
 
 Imports :mod:`softplot.orientation` (and through it :mod:`softplot.geometry`), the motor
 interface and the feature data model.
@@ -11,4 +13,3 @@ from softplot.stereo.model import (  # noqa: F401
     StereoModel,
 )
 from softplot.stereo.plotter import MODES, Cycle, Plotter, PlotterHalted  # noqa: F401
-from softplot.stereo.session import Session  # noqa: F401
