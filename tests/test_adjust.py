@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.sparse
+import scipy.stats
 
 from softplot.adjust import (
     UndeterminedError,
@@ -197,3 +198,78 @@ def test_gauss_helmert_line_fit_errors_in_both_coordinates():
     # adjusted points lie on the line
     lh = (obs + gh.residuals).reshape(-1, 2)
     np.testing.assert_allclose(gh.x[0] + gh.x[1] * lh[:, 0], lh[:, 1], atol=1e-10)
+
+
+# --- data snooping without a known a priori precision (Pope's tau test) -------------------
+
+
+def test_tau_critical_value_limits():
+    from softplot.adjust import tau_critical_value
+
+    # below sqrt(r) (the largest |tau| possible), tends to the normal value as r grows
+    for r in (2, 3, 5, 11, 50):
+        assert tau_critical_value(r, 0.001) < np.sqrt(r)
+    assert tau_critical_value(10**6, 0.001) == pytest.approx(critical_value(0.001), abs=1e-3)
+    assert np.isnan(tau_critical_value(1, 0.001))
+    with pytest.raises(SoftplotError):
+        tau_critical_value(10, 0.0)
+
+
+def test_tau_test_false_alarm_rate_is_alpha0():
+    # unit weights (precision unknown): |tau| exceeds its critical value with probability
+    # alpha0 for every observation, whatever the noise level (here 0.37); the normal critical
+    # value would give 0.041 here instead of 0.05
+    from softplot.adjust import data_snooping
+
+    A, x, _, rng = _line(n=12)
+    adj = linear_least_squares(A, A @ x + rng.normal(0, 0.37, 12), alpha0=0.05)
+    assert adj.snooping_test == "pope-tau"
+    qvv = adj.qvv  # the same for every trial of this linear model
+    np.testing.assert_allclose(
+        qvv, np.diag(np.eye(12) - A @ np.linalg.solve(A.T @ A, A.T)), atol=1e-12
+    )
+    H = A @ np.linalg.solve(A.T @ A, A.T)
+    L = A @ x + rng.normal(0, 0.37, (20000, 12))
+    V = L @ H.T - L
+    hits = sum(int(data_snooping(v, qvv, np.ones(12), 9, alpha0=0.05).flagged.sum()) for v in V)
+    # 12000 expected; the 12 of a trial are correlated: sd < 1.5 %
+    assert hits / V.size == pytest.approx(0.05, rel=0.06)
+    # the adjustment's own statistic is the same function
+    same = data_snooping(adj.residuals, adj.qvv, adj.weights, adj.redundancy, alpha0=0.05)
+    np.testing.assert_allclose(adj.standardized, same.statistic, rtol=1e-12)
+
+
+def test_tau_flags_a_blunder_that_w_against_a_unit_prior_misses():
+    A, x, l, _ = _line(n=30, seed=3, sigma=0.003)
+    l = l.copy()
+    l[11] += 0.05  # 17 sigma, but far below the unit a priori sigma0 of unit weights
+    tau = linear_least_squares(A, l)  # unit weights: precision not given
+    w = linear_least_squares(A, l, precision_known=True)  # the old test (sigma0 prior = 1)
+    assert tau.snooping_test == "pope-tau" and w.snooping_test == "baarda-w"
+    assert not w.flagged.any()
+    assert tau.blunders() == [11]
+    assert tau.critical_value == pytest.approx(
+        np.sqrt(27) * (t := scipy.stats.t.ppf(1 - 0.0005, 26)) / np.sqrt(26 + t * t)
+    )
+    assert "Pope's tau test" in tau.summary()
+    clean = linear_least_squares(A, A @ x + np.random.default_rng(5).normal(0, 0.003, 30))
+    assert clean.blunders() == []
+
+
+def test_snooping_ranks_labels_most_likely_first():
+    from softplot.adjust import data_snooping, snooping_json
+
+    v = np.array([0.1, -5.0, 0.2, 4.0, 0.0, -0.1])
+    sn = data_snooping(v, np.full(6, 0.5), np.ones(6), 4, sigma0_prior=0.1)
+    assert sn.test == "baarda-w"
+    assert sn.ranked() == [1, 3]
+    d = snooping_json(sn, ["A", "B", "B", "C", "C", "D"])
+    assert d["blunders"] == ["B", "C"]
+    assert d["snooping_test"]["test"] == "baarda-w"
+    assert d["snooping_test"]["critical_value"] == pytest.approx(3.2905, abs=1e-4)
+    # too little redundancy to locate a blunder: said, nothing flagged
+    none = data_snooping(v, np.full(6, 0.5), np.ones(6), 1)
+    assert none.test == "none" and not none.flagged.any()
+    assert none.to_json()["critical_value"] is None
+    with pytest.raises(SoftplotError, match="labels"):
+        sn.ranked(["A"])

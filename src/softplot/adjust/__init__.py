@@ -5,10 +5,15 @@ definitions (redundancy, sigma0, standardised residuals, data snooping).
 """
 
 from softplot.adjust.core import (  # noqa: F401
+    SNOOPING_TESTS,
     Adjustment,
+    Snooping,
     critical_value,
+    data_snooping,
     least_squares,
     linear_least_squares,
+    snooping_json,
+    tau_critical_value,
     weights_from_sigma,
 )
 from softplot.adjust.diagnose import (  # noqa: F401

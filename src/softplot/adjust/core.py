@@ -21,9 +21,21 @@ halved while the weighted sum of squares grows (unconstrained problems only). Re
   constraints) and covariance ``sigma0**2 Qxx`` (``sigma0_prior**2 Qxx`` when ``r = 0``);
 * residuals ``v = f(x_hat) - l``, their cofactors ``qvv_i = 1/p_i - (J Qxx J')_ii``,
   redundancy numbers ``r_i = p_i qvv_i`` (they sum to ``r``);
-* Baarda's standardised residuals ``w_i = v_i / (sigma0_prior sqrt(qvv_i))`` and data
-  snooping: ``|w_i| > k`` with ``k = Phi^-1(1 - alpha0/2)`` (3.29 for ``alpha0 = 0.001``) flags
-  a probable blunder. Observations with ``r_i < 1e-8`` are uncontrolled: ``w_i = nan``.
+* data snooping (:func:`data_snooping`), one test per observation, chosen by what is known:
+
+  - the a priori precision is known (standard errors given): Baarda's w-test,
+    ``w_i = v_i / (sigma0_prior sqrt(qvv_i))`` against ``k = Phi^-1(1 - alpha0/2)`` (3.29 for
+    ``alpha0 = 0.001``);
+  - it is not (unit weights, or standard errors known only relative to each other): Pope's
+    (1976) tau test, ``tau_i = v_i / (sigma0_hat sqrt(qvv_i))`` with the a posteriori
+    ``sigma0_hat``, against the critical value of the tau distribution with ``r`` degrees of
+    freedom, ``sqrt(r) t / sqrt(r - 1 + t^2)``, ``t`` the Student quantile ``t(r-1, 1 -
+    alpha0/2)``. ``tau_i`` is a monotone function of the externally studentised residual
+    (the residual standardised by the sigma0 of the adjustment without observation ``i``), so
+    a blunder that inflates ``sigma0_hat`` does not hide itself.
+
+  ``|statistic| > k`` flags a probable blunder; the largest one is the most likely.
+  Observations with ``r_i < 1e-8`` are uncontrolled (statistic ``nan``).
 """
 
 from __future__ import annotations
@@ -39,11 +51,23 @@ from softplot.errors import SoftplotError
 
 __all__ = [
     "Adjustment",
+    "Snooping",
+    "SNOOPING_TESTS",
+    "data_snooping",
+    "snooping_json",
     "least_squares",
     "linear_least_squares",
     "critical_value",
+    "tau_critical_value",
     "weights_from_sigma",
 ]
+
+#: names of the data-snooping tests (``Snooping.test``) and what they test against
+SNOOPING_TESTS = {
+    "baarda-w": "Baarda's w-test against the a priori sigma0",
+    "pope-tau": "Pope's tau test against the a posteriori sigma0",
+    "none": "no test (too little redundancy)",
+}
 
 
 def critical_value(alpha0: float = 0.001) -> float:
@@ -51,6 +75,194 @@ def critical_value(alpha0: float = 0.001) -> float:
     if not 0.0 < alpha0 < 1.0:
         raise SoftplotError(f"significance level alpha0 must be in (0, 1), got {alpha0}")
     return float(scipy.stats.norm.ppf(1.0 - alpha0 / 2.0))
+
+
+def tau_critical_value(redundancy: int, alpha0: float = 0.001) -> float:
+    """Critical value of Pope's tau test for ``r`` degrees of freedom (nan when r < 2).
+
+    ``tau_c = sqrt(r) t / sqrt(r - 1 + t^2)`` with ``t = t(r - 1, 1 - alpha0/2)`` (Student),
+    the two-sided ``alpha0`` quantile of the tau distribution (Pope 1976). It tends to the
+    normal critical value as ``r`` grows and is always below ``sqrt(r)``, the largest value a
+    single ``tau_i`` can take.
+    """
+    critical_value(alpha0)  # validates alpha0
+    r = int(redundancy)
+    if r < 2:
+        return float("nan")
+    t = float(scipy.stats.t.ppf(1.0 - alpha0 / 2.0, r - 1))
+    return float(np.sqrt(r) * t / np.sqrt(r - 1 + t * t))
+
+
+@dataclass(frozen=True)
+class Snooping:
+    """Result of :func:`data_snooping`: one test statistic per observation and its verdict.
+
+    Attributes
+    ----------
+    test : str
+        ``"baarda-w"`` (a priori sigma0 known), ``"pope-tau"`` (a posteriori sigma0) or
+        ``"none"`` (redundancy too small to locate a blunder).
+    alpha0 : float
+        Significance level of the test of one observation.
+    critical_value : float
+        Threshold of ``|statistic|`` (nan for ``"none"``).
+    statistic : ndarray, shape (n,)
+        ``w_i`` or ``tau_i`` (nan for uncontrolled observations).
+    flagged : ndarray of bool, shape (n,)
+        ``|statistic| > critical_value``.
+    sigma0 : float
+        The standard error of unit weight the residuals were standardised with (a priori for
+        the w-test, a posteriori for the tau test).
+    redundancy : int
+    """
+
+    test: str
+    alpha0: float
+    critical_value: float
+    statistic: np.ndarray
+    flagged: np.ndarray
+    sigma0: float
+    redundancy: int
+
+    def ranked(self, labels=None) -> list:
+        """Flagged observations (or their labels), most likely blunder first.
+
+        Parameters
+        ----------
+        labels : sequence (n,), optional
+            A label per observation (e.g. the point name of every coordinate); observations
+            sharing a label are one candidate, ranked by its largest ``|statistic|``.
+
+        Returns
+        -------
+        list
+            Labels (or observation indices without ``labels``), by decreasing ``|statistic|``.
+        """
+        idx = np.nonzero(self.flagged)[0]
+        order = idx[np.argsort(-np.abs(self.statistic[idx]), kind="stable")]
+        if labels is None:
+            return [int(i) for i in order]
+        labels = list(labels)
+        if len(labels) != self.flagged.size:
+            raise SoftplotError(
+                f"data snooping: {len(labels)} labels for {self.flagged.size} observations"
+            )
+        return list(dict.fromkeys(labels[i] for i in order))
+
+    def blunders(self, labels=None) -> list:
+        """Alias of :meth:`ranked`: the names of the flagged observations, most likely first."""
+        return self.ranked(labels)
+
+    def describe(self) -> str:
+        """One line naming the test and its critical value (for text reports)."""
+        if self.test == "baarda-w":
+            return (
+                f"Baarda's w-test, a priori sigma0 = {self.sigma0:.4g}, alpha0 = {self.alpha0:g}, "
+                f"|w| > {self.critical_value:.2f}"
+            )
+        if self.test == "pope-tau":
+            return (
+                f"Pope's tau test, a posteriori sigma0 = {self.sigma0:.4g} (a priori precision "
+                f"not given), r = {self.redundancy}, alpha0 = {self.alpha0:g}, "
+                f"|tau| > {self.critical_value:.2f}"
+            )
+        return f"no blunder test: redundancy r = {self.redundancy} is too small to locate one"
+
+    def to_json(self) -> dict:
+        """``{"test", "critical_value", "alpha0", "sigma0", "redundancy"}`` (nan -> None)."""
+        def fin(x):
+            return float(x) if np.isfinite(x) else None
+
+        return {
+            "test": self.test,
+            "critical_value": fin(self.critical_value),
+            "alpha0": float(self.alpha0),
+            "sigma0": fin(self.sigma0),
+            "redundancy": int(self.redundancy),
+        }
+
+
+def snooping_json(snooping: Snooping, labels=None) -> dict:
+    """The ``blunders`` and ``snooping_test`` keys of an adjustment's JSON.
+
+    ``blunders``: the flagged labels, most likely first (:meth:`Snooping.ranked`);
+    ``snooping_test``: :meth:`Snooping.to_json`.
+    """
+    return {"blunders": snooping.ranked(labels), "snooping_test": snooping.to_json()}
+
+
+def data_snooping(
+    residuals,
+    qvv,
+    weights,
+    redundancy: int,
+    *,
+    sigma0_prior: float | None = None,
+    alpha0: float = 0.001,
+) -> Snooping:
+    """Test every observation for a blunder: Baarda's w-test or Pope's tau test.
+
+    Parameters
+    ----------
+    residuals : array_like, shape (n,)
+        ``v`` (adjusted minus observed), unit of the observations.
+    qvv : array_like, shape (n,)
+        Diagonal cofactors of the residuals (same scale as ``1 / weights``).
+    weights : array_like, shape (n,)
+        ``p_i`` (0 for an observation that does not take part).
+    redundancy : int
+        ``r`` of the adjustment.
+    sigma0_prior : float, optional
+        The a priori standard error of unit weight when it is KNOWN (the observations'
+        standard errors were given): Baarda's w-test. None: the precision is not known (unit
+        weights, or standard errors known only relative to each other): Pope's tau test
+        against the a posteriori ``sigma0_hat = sqrt(v'Pv / r)``.
+    alpha0 : float
+        Significance level of the test of one observation.
+
+    Returns
+    -------
+    Snooping
+        Test ``"none"`` (nothing flagged) when ``r = 0`` (w) or ``r < 2`` (tau).
+    """
+    v = np.asarray(residuals, dtype=float).ravel()
+    q = np.asarray(qvv, dtype=float).ravel()
+    p = np.asarray(weights, dtype=float).ravel()
+    if not (v.size == q.size == p.size):
+        raise SoftplotError(
+            f"data snooping: {v.size} residuals, {q.size} cofactors and {p.size} weights"
+        )
+    r = int(redundancy)
+    ri = np.clip(p * q, 0.0, 1.0)
+    controlled = ri > 1e-8
+    k_w = critical_value(alpha0)
+    if sigma0_prior is not None:
+        s0 = float(sigma0_prior)
+        if not (np.isfinite(s0) and s0 > 0):
+            raise SoftplotError(f"data snooping: a priori sigma0 must be > 0, got {s0}")
+        test, k = ("baarda-w", k_w) if r > 0 else ("none", float("nan"))
+    else:
+        vtpv = float(np.sum(p * v**2))
+        s0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
+        k = tau_critical_value(r, alpha0)
+        test = "pope-tau" if np.isfinite(k) else "none"
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if test == "none":
+            stat = np.full(v.size, np.nan)
+        elif s0 > 0:
+            stat = np.where(controlled, v / (s0 * np.sqrt(q)), np.nan)
+        else:  # exact fit: nothing to test against, nothing departs
+            stat = np.where(controlled, 0.0, np.nan)
+    flagged = np.abs(np.nan_to_num(stat, nan=0.0)) > (k if np.isfinite(k) else np.inf)
+    return Snooping(
+        test=test,
+        alpha0=float(alpha0),
+        critical_value=float(k),
+        statistic=stat,
+        flagged=flagged,
+        sigma0=s0,
+        redundancy=r,
+    )
 
 
 def weights_from_sigma(sigma, n: int, sigma0_prior: float = 1.0) -> np.ndarray:
@@ -88,13 +300,14 @@ class Adjustment:
     redundancy_numbers : ndarray, shape (n,)
         ``r_i = p_i qvv_i`` (sum = r).
     standardized : ndarray, shape (n,)
-        Baarda's ``w_i`` (nan for uncontrolled observations).
+        The statistic of data snooping: Baarda's ``w_i`` (a priori precision known) or Pope's
+        ``tau_i`` (it is not; see :attr:`snooping`); nan for uncontrolled observations.
     critical_value : float
-        Threshold of the w-test.
+        Threshold of that test.
     alpha0 : float
-        Significance level of the w-test.
+        Significance level of that test.
     flagged : ndarray of bool, shape (n,)
-        ``|w_i| > critical_value``.
+        ``|standardized_i| > critical_value``.
     fixed : ndarray of bool, shape (u,)
         Unknowns held fixed.
     n_obs, n_constraints : int
@@ -103,6 +316,8 @@ class Adjustment:
     history : list of float
         ``v'Pv`` after every iteration.
     weights : ndarray, shape (n,)
+    snooping : Snooping
+        The data-snooping test used (its name, critical value, statistic and flags).
     """
 
     names: tuple
@@ -125,6 +340,16 @@ class Adjustment:
     converged: bool
     weights: np.ndarray
     history: list = field(default_factory=list)
+    snooping: Snooping | None = None
+
+    @property
+    def snooping_test(self) -> str:
+        """``"baarda-w"``, ``"pope-tau"`` or ``"none"`` (see :func:`data_snooping`)."""
+        return self.snooping.test if self.snooping is not None else "baarda-w"
+
+    def blunders(self, labels=None) -> list:
+        """Flagged observations (or their ``labels``), most likely blunder first."""
+        return self.snooping.ranked(labels)
 
     @property
     def vtpv(self) -> float:
@@ -191,10 +416,12 @@ class Adjustment:
         lines = [head]
         for nm, x, s, f in zip(self.names, self.x, self.std, self.fixed, strict=True):
             lines.append(f"  {nm:<16}{x:>20.10g}  " + ("fixed" if f else f"+- {s:.4g}"))
-        k = np.nonzero(self.flagged)[0]
+        k = self.blunders()
+        sym = "tau" if self.snooping_test == "pope-tau" else "w"
         lines.append(
-            f"data snooping (alpha0 = {self.alpha0:g}, |w| > {self.critical_value:.2f}): "
-            + (", ".join(f"obs {i} (w = {self.standardized[i]:.2f})" for i in k[:10]) or "none")
+            f"data snooping ({self.snooping.describe()}): "
+            + (", ".join(f"obs {i} ({sym} = {self.standardized[i]:.2f})" for i in k[:10])
+               or "none")
         )
         return "\n".join(lines)
 
@@ -212,29 +439,23 @@ def _gauss_markov_qvv(J, Qxx, p):
     return np.clip(qll - h, 0.0, None)
 
 
-def _data_snooping(qvv, p, v, sigma0_prior, alpha0):
-    """Redundancy numbers, standardised residuals w and flags |w| > k from the cofactors qvv."""
-    ri = np.clip(p * qvv, 0.0, 1.0)
-    k = critical_value(alpha0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(ri > 1e-8, v / (sigma0_prior * np.sqrt(qvv)), np.nan)
-    flagged = np.abs(np.nan_to_num(w, nan=0.0)) > k
-    return ri, w, k, flagged
-
-
 def _build_adjustment(
     *, names, x, free, Qf, qvv, p, v, r, sigma0_prior, alpha0, fixed, n, c, it, converged,
-    history,
+    history, precision_known=True,
 ) -> Adjustment:
     """The :class:`Adjustment` at the solution from the free-unknown cofactors ``Qf`` and qvv.
 
     Shared by the Gauss-Markov (:func:`least_squares`) and Gauss-Helmert models: sigma0 from
-    ``v'Pv / r``, data snooping, and ``Qf`` embedded into the full ``(u, u)`` cofactor matrix
+    ``v'Pv / r``, data snooping (:func:`data_snooping`; the w-test when ``precision_known``,
+    else the tau test), and ``Qf`` embedded into the full ``(u, u)`` cofactor matrix
     (zero rows/columns for fixed unknowns).
     """
     vtpv = float(np.sum(p * v**2))
     sigma0 = float(np.sqrt(vtpv / r)) if r > 0 else float("nan")
-    ri, w, k, flagged = _data_snooping(qvv, p, v, sigma0_prior, alpha0)
+    ri = np.clip(p * qvv, 0.0, 1.0)
+    sn = data_snooping(
+        v, qvv, p, r, sigma0_prior=sigma0_prior if precision_known else None, alpha0=alpha0
+    )
     u = x.size
     Q = np.zeros((u, u))
     Q[np.ix_(free, free)] = Qf
@@ -248,10 +469,10 @@ def _build_adjustment(
         residuals=v,
         qvv=qvv,
         redundancy_numbers=ri,
-        standardized=w,
-        critical_value=k,
+        standardized=sn.statistic,
+        critical_value=sn.critical_value,
         alpha0=float(alpha0),
-        flagged=flagged,
+        flagged=sn.flagged,
         fixed=fixed,
         n_obs=n,
         n_constraints=c,
@@ -259,6 +480,7 @@ def _build_adjustment(
         converged=converged,
         weights=p,
         history=history,
+        snooping=sn,
     )
 
 
@@ -308,6 +530,7 @@ def least_squares(
     rcond: float = DEFAULT_RCOND,
     what: str = "adjustment",
     require_convergence: bool = True,
+    precision_known: bool | None = None,
 ) -> Adjustment:
     """Nonlinear weighted least squares (Gauss-Markov model, Gauss-Newton iterations).
 
@@ -342,6 +565,10 @@ def least_squares(
         Name of the problem in error messages.
     require_convergence : bool
         Raise :class:`SoftplotError` when not converged after ``max_iter``.
+    precision_known : bool, optional
+        Whether ``sigma`` and ``sigma0_prior`` state the observations' precision (Baarda's
+        w-test) or only their relative weights (Pope's tau test against the a posteriori
+        sigma0). Default: known when ``sigma`` is given, not known for unit weights.
 
     Returns
     -------
@@ -440,6 +667,7 @@ def least_squares(
     return _build_adjustment(
         names=names, x=x, free=free, Qf=Qf, qvv=qvv, p=p, v=v, r=r, sigma0_prior=sigma0_prior,
         alpha0=alpha0, fixed=fixed, n=n, c=c, it=it, converged=converged, history=history,
+        precision_known=sigma is not None if precision_known is None else precision_known,
     )
 
 

@@ -103,6 +103,7 @@ def gauss_helmert(
     rcond: float = DEFAULT_RCOND,
     what: str = "adjustment",
     require_convergence: bool = True,
+    precision_known: bool | None = None,
 ) -> Adjustment:
     """Iterated Gauss-Helmert adjustment of condition equations ``F(x, l + v) = 0``.
 
@@ -115,7 +116,8 @@ def gauss_helmert(
         Initial unknowns.
     obs : array_like, shape (n,)
         Observations.
-    sigma, names, sigma0_prior, fixed, max_iter, tol, alpha0, rcond, what, require_convergence
+    sigma, names, sigma0_prior, fixed, max_iter, tol, alpha0, rcond, what, require_convergence,
+    precision_known
         As in :func:`softplot.adjust.least_squares`.
 
     Returns
@@ -180,4 +182,5 @@ def gauss_helmert(
     return _build_adjustment(
         names=names, x=x, free=free, Qf=Qf, qvv=qvv, p=p, v=v, r=r, sigma0_prior=sigma0_prior,
         alpha0=alpha0, fixed=fixed, n=n, c=0, it=it, converged=converged, history=history,
+        precision_known=sigma is not None if precision_known is None else precision_known,
     )
