@@ -142,12 +142,11 @@ class Snooping:
         order = idx[np.argsort(-np.abs(self.statistic[idx]), kind="stable")]
         if labels is None:
             return [int(i) for i in order]
-        labels = list(labels)
         if len(labels) != self.flagged.size:
             raise SoftplotError(
                 f"data snooping: {len(labels)} labels for {self.flagged.size} observations"
             )
-        return list(dict.fromkeys(labels[i] for i in order))
+        return list(dict.fromkeys(_plain(labels[i]) for i in order))
 
     def blunders(self, labels=None) -> list:
         """Alias of :meth:`ranked`: the names of the flagged observations, most likely first."""
@@ -180,6 +179,11 @@ class Snooping:
             "sigma0": fin(self.sigma0),
             "redundancy": int(self.redundancy),
         }
+
+
+def _plain(x):
+    """A numpy scalar label as the Python object (str, int) it stands for."""
+    return x.item() if isinstance(x, np.generic) else x
 
 
 def snooping_json(snooping: Snooping, labels=None) -> dict:
