@@ -10,11 +10,15 @@ Truth JSON keys: ``image``, ``camera``, ``width``, ``height``, ``dpi``, ``polari
 ``bit_depth``, ``channels``, ``seed``, ``format_mm``, ``marks`` (each: ``kind``
 "reseau"|"fiducial", ``name``, ``row``, ``col`` (null for fiducials), ``film_x``, ``film_y``
 (certificate film mm), ``x``, ``y`` (exact pixel position, pixel system), ``visible``,
-``state`` "visible"|"covered"|"cut"|"outside", ``inside_fraction`` (share of the mark's area
+``state`` "visible"|"covered"|"cut"|"outside"|"dark" (under a flat dark region that leaves it
+no contrast), ``inside_fraction`` (share of the mark's area
 inside the image), ``shape``, ``contrast`` and ``contrast_min`` (local mark-minus-background
 amplitude, grey, fraction of full scale), ``damaged`` (dust or a scratch touches it),
 ``centroid_shift_px`` (intensity centroid of the noise-free imaged mark minus ``x``, ``y``:
-the deformation's curvature across the mark)),
+the deformation's curvature across the mark), ``arms`` (bars imaged: 2, 1 for a one-armed
+cross, 0 when covered, dark or outside), ``arm_axis`` ("x" or "y": the film axis of the bar of
+a one-armed cross, else null), ``arm_length_mm`` and ``line_width_mm`` (the mark as drawn,
+which may differ from the certificate's), ``dark`` (under a dark region)),
 ``mapping`` (parameters of :class:`TruthMapping`: undeformed film mm <-> pixel), ``render``
 (``blur_sigma_px``, ``noise_sigma``, ``contrast``, ``background``, ``mark_level``,
 ``line_width_px``, ``arm_half_length_px``, ...) and ``spec`` (the :class:`ScanSpec`).

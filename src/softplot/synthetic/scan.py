@@ -52,7 +52,8 @@ OCCLUSIONS = ("first-order", "exact")
 
 _BLOCK = 64  # rows per independently seeded block of random numbers
 _GRID = 32  # px between exact film-coordinate nodes for the scene maps
-_STREAMS = {"deform": 1, "scene": 2, "cover": 3, "dust": 4, "scratch": 5, "grain": 6, "noise": 7}
+_STREAMS = {"deform": 1, "scene": 2, "cover": 3, "dust": 4, "scratch": 5, "grain": 6, "noise": 7,
+            "onearm": 8}
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,25 @@ class ScanSpec:
         TIFF compression ("zlib", "lzw", ...); None writes uncompressed (memory-mappable).
     subrows : int
         Sub-rows per pixel in the mark integration (>= 8).
+    mark_arm_scale, mark_width_scale : float
+        The reseau crosses as exposed: arm length and line width are the certificate's times
+        these (a certificate's mark sizes are nominal; the truth records the real ones).
+    mark_opacity : float
+        Opacity of the reseau crosses and fiducials in (0, 1] (1: opaque; 0.6: 40 % of the
+        scene's light passes through a mark).
+    centre_scale : float
+        The reseau's centre cross (odd rows and cols) is this many times the others (arm
+        length and line width), as on plates with a larger centre cross.
+    one_armed : int or tuple of str
+        Number of visible crosses (chosen at random), or their names, of which only one bar
+        was imaged (the other faded or aliased away); truth ``arms`` 1 and ``arm_axis``.
+    dark_rows : tuple of (int, int)
+        Inclusive ranges of reseau rows ``(r0, r1)`` lying under a flat dark region of the
+        scene (sky, shadow) that reaches halfway to the neighbouring rows, or the frame's edge
+        for the first and last row. Its scene factor is ``dark_level``.
+    dark_level : float
+        Scene factor in ``dark_rows``, in [0, 1): 0 exposes nothing, so the crosses there
+        have no contrast at all (truth state "dark", not visible).
     occlusion : str
         How an opaque mark hides the scene (blurs of 0.4 px and more): "first-order" (the
         default) images it as ``blur(S) + (m - blur(S)) x blur(M)`` (``S`` the scene, ``M``
@@ -146,6 +166,13 @@ class ScanSpec:
     tiff_compression: str | None = None
     subrows: int = 16
     occlusion: str = "first-order"
+    mark_arm_scale: float = 1.0
+    mark_width_scale: float = 1.0
+    mark_opacity: float = 1.0
+    centre_scale: float = 1.0
+    one_armed: int | tuple[str, ...] = 0
+    dark_rows: tuple[tuple[int, int], ...] = ()
+    dark_level: float = 0.0
 
     def validate(self) -> "ScanSpec":
         """Check every field; raise :class:`SoftplotError` naming the first bad one."""
@@ -209,6 +236,29 @@ class ScanSpec:
             raise bad("jpeg_quality", "must be an integer in 1..100")
         if self.occlusion not in OCCLUSIONS:
             raise bad("occlusion", f"must be one of {', '.join(OCCLUSIONS)}")
+        for n in ("mark_arm_scale", "mark_width_scale", "centre_scale"):
+            num(n, 0.0, lo_open=True)
+            if getattr(self, n) > 10:
+                raise bad(n, "must be at most 10")
+        num("mark_opacity", 0.0, lo_open=True)
+        if self.mark_opacity > 1:
+            raise bad("mark_opacity", "must be at most 1")
+        num("dark_level", 0.0)
+        if self.dark_level >= 1:
+            raise bad("dark_level", "must be below 1")
+        if not isinstance(self.one_armed, (tuple, list)):
+            if isinstance(self.one_armed, bool) or not isinstance(self.one_armed,
+                                                                  (int, np.integer)):
+                raise bad("one_armed", "must be a count or a list of cross names")
+            if self.one_armed < 0:
+                raise bad("one_armed", "must not be negative")
+        try:
+            ok = all(len(r) == 2 and int(r[0]) == r[0] and int(r[1]) == r[1] and 0 <= r[0] <= r[1]
+                     for r in self.dark_rows)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise bad("dark_rows", "must be pairs (first row, last row) of row indices")
         return self
 
     def crop_px(self, px_per_mm: float) -> tuple[int, int, int, int]:
@@ -224,6 +274,9 @@ class ScanSpec:
         d["cover"] = list(self.cover) if isinstance(self.cover, (tuple, list)) else int(self.cover)
         d["offset_px"] = [float(v) for v in np.ravel(self.offset_px)]
         d["crop_mm"] = [float(v) for v in np.ravel(np.asarray(self.crop_mm, float))]
+        d["one_armed"] = (list(self.one_armed) if isinstance(self.one_armed, (tuple, list))
+                          else int(self.one_armed))
+        d["dark_rows"] = [[int(a), int(b)] for a, b in self.dark_rows]
         return d
 
 
@@ -312,18 +365,26 @@ class _Marks:
     shapes: list
 
 
-def _marks(camera: Camera) -> _Marks:
+def _marks(camera: Camera, spec: ScanSpec | None = None) -> _Marks:
+    """The marks as exposed: the certificate's positions, the shapes of ``spec`` (mark sizes
+    scaled, a larger centre cross)."""
+    spec = spec or ScanSpec()
     kinds, names, rows, cols, film, shapes = [], [], [], [], [], []
     if camera.reseau is not None:
         r = camera.reseau
-        shp = cross_shape(r.arm_length_mm, r.line_width_mm)
+        arm = r.arm_length_mm * spec.mark_arm_scale
+        lw = r.line_width_mm * spec.mark_width_scale
+        shp = cross_shape(arm, lw)
+        centre = ((r.rows - 1) // 2, (r.cols - 1) // 2) if r.rows % 2 and r.cols % 2 else None
+        big = cross_shape(arm * spec.centre_scale, lw * spec.centre_scale)
         for (ri, ci), nm, xy in zip(r.row_col(), r.names(), r.film(), strict=False):
             kinds.append("reseau")
             names.append(nm)
             rows.append(int(ri))
             cols.append(int(ci))
             film.append(xy)
-            shapes.append(shp)
+            is_centre = centre is not None and (int(ri), int(ci)) == centre
+            shapes.append(big if is_centre and spec.centre_scale != 1.0 else shp)
     for f in camera.fiducials:
         kinds.append("fiducial")
         names.append(f.name)
@@ -332,6 +393,60 @@ def _marks(camera: Camera) -> _Marks:
         film.append((f.x, f.y))
         shapes.append(fiducial_shape(f))
     return _Marks(kinds, names, rows, cols, np.array(film, float).reshape(-1, 2), shapes)
+
+
+def bar_shape(cross: MarkShape, axis: str) -> MarkShape:
+    """One bar of a cross: the horizontal (film x, ``axis="x"``) or the vertical one."""
+    hx, hy = float(cross.rects[0, 0]), float(cross.rects[0, 1])  # the x bar: (L, w)
+    rect = [hx, hy, 1.0] if axis == "x" else [hy, hx, 1.0]
+    return MarkShape(kind="bar", rects=np.array([rect]), discs=np.zeros((0, 2)))
+
+
+def _inside(mapping, shape: MarkShape, centre_mm, width: int, height: int) -> bool:
+    o = mapping.film_to_pixel(shape.outline_mm() + centre_mm)
+    return bool(np.all((o >= -0.5) & (o <= np.array([width, height]) - 0.5)))
+
+
+def _choose_one_armed(spec: ScanSpec, mk: _Marks, mapping, size, rng,
+                      exclude: np.ndarray) -> dict[int, str]:
+    """{mark index: surviving bar axis} of the one-armed crosses of ``spec``."""
+    if isinstance(spec.one_armed, (tuple, list)):
+        where = {n: i for i, n in enumerate(mk.name)}
+        out = {}
+        for n in spec.one_armed:
+            if n not in where or mk.kind[where[n]] != "reseau":
+                raise SoftplotError(f"synthetic scan: cannot make {n!r} one-armed: no such cross")
+            out[where[n]] = "x" if rng.uniform() < 0.5 else "y"
+        return out
+    n = int(spec.one_armed)
+    if n == 0:
+        return {}
+    pool = [i for i in range(len(mk.name)) if mk.kind[i] == "reseau" and not exclude[i]
+            and _inside(mapping, mk.shapes[i], mk.film[i], *size)]
+    if n > len(pool):
+        raise SoftplotError(f"synthetic scan: cannot make {n} crosses one-armed, only "
+                            f"{len(pool)} visible")
+    pick = sorted(int(i) for i in rng.choice(pool, n, replace=False))
+    return {i: ("x" if rng.uniform() < 0.5 else "y") for i in pick}
+
+
+def _dark_bands(camera: Camera, spec: ScanSpec) -> list[tuple[float, float]]:
+    """Film y intervals (lo, hi), undeformed film mm, of the dark regions of ``spec``."""
+    if not spec.dark_rows:
+        return []
+    r = camera.reseau
+    if r is None:
+        raise SoftplotError("synthetic scan: dark_rows needs a reseau camera")
+    y = r.nominal_film()[:: r.cols, 1]  # film y of each row, top row first
+    out = []
+    for r0, r1 in spec.dark_rows:
+        if r1 >= r.rows:
+            raise SoftplotError(f"synthetic scan: dark_rows ({r0}, {r1}): the reseau has "
+                                f"{r.rows} rows")
+        hi = math.inf if r0 == 0 else 0.5 * (y[r0] + y[r0 - 1])
+        lo = -math.inf if r1 == r.rows - 1 else 0.5 * (y[r1] + y[r1 + 1])
+        out.append((lo, hi))
+    return out
 
 
 def _shape_key(s: MarkShape) -> tuple:
@@ -409,9 +524,17 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
     )
 
     # -- marks: exact coverage, states -------------------------------------------------------
-    mk = _marks(cam)
+    mk = _marks(cam, spec)
     n_marks = len(mk.name)
     xy_px = mapping.film_to_pixel(mk.film) if n_marks else np.zeros((0, 2))
+    bands = _dark_bands(cam, spec)
+    in_dark = np.zeros(n_marks, bool)
+    for lo, hi in bands:
+        in_dark |= (mk.film[:, 1] > lo) & (mk.film[:, 1] < hi) & (np.array(mk.kind) == "reseau")
+    one_armed = _choose_one_armed(spec, mk, mapping, (width, height), _rng(seed, "onearm"),
+                                  in_dark)
+    for i, axis in one_armed.items():
+        mk.shapes[i] = bar_shape(mk.shapes[i], axis)
     groups: dict[tuple, list[int]] = {}
     for i, shp in enumerate(mk.shapes):
         groups.setdefault(_shape_key(shp), []).append(i)
@@ -419,6 +542,7 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
     parts = []
     hidden = []
     post_blur = False
+    op = float(spec.mark_opacity)
     for members in groups.values():
         members = np.array(members)
         idx, col, row, val, post_blur = render_marks(
@@ -431,7 +555,7 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
             # scene there never reaches the scanner's optics
             a_idx, a_col, a_row, a_cov = area_coverage(
                 mapping, mk.film[members], mk.shapes[members[0]], spec.subrows)
-            hidden.append((a_col, a_row, a_cov))
+            hidden.append((a_col, a_row, a_cov * op))
     if parts:
         m_idx, m_col, m_row, m_val = (np.concatenate(a) for a in zip(*parts, strict=True))
     else:
@@ -451,6 +575,10 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
         lo_, hi_ = np.floor(o.min(axis=0)).astype(int), np.ceil(o.max(axis=0)).astype(int)
         box[i] = (lo_[0] - halo, lo_[1] - halo, hi_[0] + halo, hi_[1] + halo)
     state = np.where(geom_in, "visible", np.where(frac <= 1e-6, "outside", "cut")).astype(object)
+    # a flat dark region that exposes (almost) nothing leaves the crosses in it no contrast
+    floor = max(spec.noise_sigma, 1.0 / (2**spec.bits - 1) if spec.bits < 32 else 0.0)
+    dark = in_dark & (spec.dark_level * spec.contrast * op <= floor)
+    state[dark & geom_in] = "dark"
     # intensity centroid of each imaged mark minus its true position (the mapping's curvature
     # across the mark; 0 for an affine mapping)
     shift = np.full((n_marks, 2), np.nan)
@@ -504,21 +632,23 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
     )
     ext = (corners[:, 0].min() - 1, corners[:, 0].max() + 1,
            corners[:, 1].min() - 1, corners[:, 1].max() + 1)
-    arm = (cam.reseau.arm_length_mm, cam.reseau.line_width_mm) if cam.reseau else (1.0, 0.05)
+    arm = ((cam.reseau.arm_length_mm * spec.mark_arm_scale,
+            cam.reseau.line_width_mm * spec.mark_width_scale) if cam.reseau else (1.0, 0.05))
     scene = Scene(spec.scene, ext, s, _rng(seed, "scene"), rgb=spec.rgb, avoid_mm=mk.film,
                   avoid_radius_mm=1.5 * arm[0] + 0.5, cross_mm=arm)
 
     image = _compose(spec, seed, mapping, scene, (width, height), (fw, fh), s, mark_level,
-                     mask, (m_idx, m_col, m_row, m_val if marks else m_val * 0), post_blur,
-                     patches, clip or spec.bits != 32,
+                     mask, (m_idx, m_col, m_row, m_val * op if marks else m_val * 0), post_blur,
+                     patches, clip or spec.bits != 32, bands,
                      hide=tuple(np.concatenate(a) for a in zip(*hidden, strict=True))
                      if hidden else None)
 
     # -- truth ----------------------------------------------------------------------------
-    local = _local_contrast(scene, mk, spec.contrast) * luma
+    local = _local_contrast(scene, mk, spec.contrast) * luma * op
+    local[in_dark] = spec.contrast * spec.dark_level * luma * op
     r = cam.reseau
     if r is not None:
-        lw_mm, arm_mm = r.line_width_mm, r.arm_length_mm
+        lw_mm, arm_mm = arm[1], arm[0]
     elif cam.fiducials:
         lw_mm, arm_mm = cam.fiducials[0].line_width_mm, cam.fiducials[0].size_mm
     else:  # pragma: no cover - a certificate always has marks
@@ -547,6 +677,12 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
             "centroid_shift_px": (
                 None if np.isnan(shift[i, 0]) else [float(shift[i, 0]), float(shift[i, 1])]
             ),
+            "arms": (0 if state[i] in ("dark", "covered", "outside")
+                     else 1 if i in one_armed else 2),
+            "arm_axis": one_armed.get(i),
+            "arm_length_mm": _shape_size(mk.shapes[i])[0],
+            "line_width_mm": _shape_size(mk.shapes[i])[1],
+            "dark": bool(in_dark[i]),
         })
     noise_grey = spec.noise_sigma * (math.sqrt(sum(w * w for w in LUMA)) if channels == 3 else 1.0)
     truth = {
@@ -588,6 +724,14 @@ def render_scan(camera, spec: ScanSpec | None = None, seed: int = 0,
         "spec": spec.to_dict(),
     }
     return image, truth
+
+
+def _shape_size(shape: MarkShape) -> tuple[float | None, float | None]:
+    """(arm length, line width) film mm of a cross or bar (None, None for other shapes)."""
+    if shape.kind not in ("cross", "bar"):
+        return None, None
+    hx, hy = float(shape.rects[0, 0]), float(shape.rects[0, 1])
+    return 2 * max(hx, hy), 2 * min(hx, hy)
 
 
 def _choose_cover(spec: ScanSpec, mk: _Marks, state: np.ndarray, rng) -> list[int]:
@@ -715,7 +859,7 @@ def _on_image_by_row(col, row, val, width, height):
 
 
 def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, sparse,
-             post_blur, patches, clip=True, hide=None):
+             post_blur, patches, clip=True, bands=(), hide=None):
     width, height = size
     fw, fh = format_mm
     channels = 3 if spec.rgb else 1
@@ -725,7 +869,8 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
     sig = spec.blur_sigma_px
     rad = int(math.ceil(4 * sig)) if sig > 0 else 0
     halo = rad + 1 if sig > 0 else 0
-    flat = spec.scene == "none" and not spec.rgb  # no per-pixel film coordinates needed
+    # no per-pixel film coordinates needed
+    flat = spec.scene == "none" and not spec.rgb and not bands
     if flat:  # the format's outline in pixels (1/16 px vertices, every ~0.5 mm of film)
         n_side = int(max(fw, fh) / 0.5) + 2
         t = np.linspace(-0.5, 0.5, n_side)
@@ -761,6 +906,13 @@ def _compose(spec, seed, mapping, scene, size, format_mm, s, mark_level, mask, s
         else:
             u, v = _rows_film(cu, cv, a0, a1)
             g = scene.sample(u, v)
+            if bands:  # flat dark regions: the scene replaced by dark_level
+                dk = np.zeros(v.shape, bool)
+                for lo, hi in bands:
+                    dk |= (v > lo) & (v < hi)
+                if dk.any():
+                    g = np.where(dk[..., None] if g.ndim == 3 else dk, np.float32(spec.dark_level),
+                                 g).astype(np.float32)
             val = (level + contrast * g).astype(np.float32)
             if val.ndim == 2:
                 val = val[:, :, None]
