@@ -42,7 +42,7 @@ def test_noise_free_bundle_recovers_truth_exactly():
     )
     res = bundle_adjust(net.to_bundle_data(free=FREE7))
     assert res.converged
-    err = res.intrinsics[0] - net.intr_true[0]
+    err = res.intrinsics[0, :10] - net.intr_true[0]
     assert np.all(np.abs(err[:3]) < 1e-7)  # mm
     assert abs(err[3]) < 1e-12 and abs(err[6]) < 1e-9 and abs(err[7]) < 1e-9
     assert np.abs(res.X0 - net.X0_true).max() < 1e-6
@@ -218,7 +218,7 @@ def test_free_network_initialised_by_relative_orientation():
     d.XYZ[:] = np.nan
     d.control[:] = np.nan
     d.control_sigma[:] = np.nan
-    d.cameras[0].values[:] = net.intr_true[0]
+    d.cameras[0].values[:10] = net.intr_true[0]
     initialize(d)
     res = bundle_adjust(d, BundleOptions(datum="free"))
     assert res.converged

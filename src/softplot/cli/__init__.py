@@ -37,6 +37,8 @@ COMMANDS = [
     "bundle",
     "calibrate",
     "triangulate",
+    "import_",
+    "export",
 ]
 
 

@@ -101,7 +101,9 @@ def guard_output(out, inputs) -> Path | None:
 
 def project_inputs(folder) -> list:
     root = Path(folder)
-    return [root / f for f in ("cameras.toml", "photos.csv", "observations.csv", "control.csv")]
+    from softplot.orientation.bundle_io import FILES
+
+    return [root / f for f in FILES]
 
 
 def _clean(o):

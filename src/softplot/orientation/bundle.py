@@ -69,8 +69,10 @@ __all__ = [
 ]
 
 #: interior-orientation parameters per physical camera (mm; k's in mm^-2, mm^-4, mm^-6;
-#: p's in mm^-1; b's unitless)
-INTRINSICS = ("c", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
+#: p's in mm^-1; b's and the aspect ``a`` unitless)
+INTRINSICS = ("c", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2", "a")
+#: lens models: where the distortion is evaluated (see the module docstring)
+LENS_MODELS = ("inverse", "forward")
 #: exterior-orientation parameters per photo (object units; radians)
 EO_NAMES = ("X0", "Y0", "Z0", "omega", "phi", "kappa")
 FREE = math.inf
@@ -83,13 +85,22 @@ class BundleCamera:
     Attributes
     ----------
     name : str
-    values : ndarray, shape (10,)
-        Start (or fixed) values of :data:`INTRINSICS`.
-    sigma : ndarray, shape (10,)
+    values : ndarray, shape (11,)
+        Start (or fixed) values of :data:`INTRINSICS` (a 10-vector gets ``a = 0``).
+    sigma : ndarray, shape (11,)
         Per parameter: ``0`` fixed, ``inf`` free, a positive number = a priori standard error
         (weighted towards ``values``).
     pixel_size_mm : float or None
         Scan pixel size, for residuals in px.
+    sigma_image_mm : float or None
+        Default standard error of its image coordinates (project files).
+    model : str
+        ``"inverse"`` (the distortion evaluated at the measured point, as
+        :mod:`softplot.camera` corrects it) or ``"forward"`` (the distortion added to the
+        projected point, as OpenCV and COLMAP model it).
+    image_size : (width, height) or None
+        Image size in pixels of a digital camera (film origin at the image centre, x right,
+        y up); needed to write pixel formats (COLMAP).
     """
 
     name: str
@@ -97,6 +108,25 @@ class BundleCamera:
     sigma: np.ndarray
     pixel_size_mm: float | None = None
     sigma_image_mm: float | None = None
+    model: str = "inverse"
+    image_size: tuple | None = None
+
+    def __post_init__(self) -> None:
+        n = len(INTRINSICS)
+        self.values = np.asarray(self.values, float).ravel()
+        self.sigma = np.asarray(self.sigma, float).ravel()
+        if self.values.size == n - 1:  # before the aspect parameter
+            self.values = np.append(self.values, 0.0)
+        if self.sigma.size == n - 1:
+            self.sigma = np.append(self.sigma, 0.0)
+        if self.values.size != n or self.sigma.size != n:
+            raise SoftplotError(f"camera {self.name}: {n} interior parameters expected")
+        if self.model not in LENS_MODELS:
+            raise SoftplotError(
+                f"camera {self.name}: lens model must be one of {LENS_MODELS}, got {self.model!r}"
+            )
+        if not (1.0 + self.values[10]) > 0:
+            raise SoftplotError(f"camera {self.name}: aspect a must be > -1")
 
     @classmethod
     def from_certificate(cls, cam, free=(), weighted=None, pixel_size_mm=None) -> "BundleCamera":
@@ -108,12 +138,16 @@ class BundleCamera:
                 f"camera {cam.name}: a radial-table distortion cannot be a bundle unknown; "
                 "give Brown coefficients"
             )
-        vals = np.array([cam.c, cam.x0, cam.y0, d.k1, d.k2, d.k3, d.p1, d.p2, d.b1, d.b2], float)
+        vals = np.array(
+            [cam.c, cam.x0, cam.y0, d.k1, d.k2, d.k3, d.p1, d.p2, d.b1, d.b2, 0.0], float
+        )
         return cls.build(cam.name, vals, free, weighted, pixel_size_mm)
 
     @classmethod
-    def build(cls, name, values, free=(), weighted=None, pixel_size_mm=None) -> "BundleCamera":
-        """From values (10,) and the names of free / weighted parameters."""
+    def build(
+        cls, name, values, free=(), weighted=None, pixel_size_mm=None, model="inverse"
+    ) -> "BundleCamera":
+        """From values (11,) or (10,) and the names of free / weighted parameters."""
         sig = np.zeros(len(INTRINSICS))
         for n in free:
             if n not in INTRINSICS:
@@ -125,7 +159,7 @@ class BundleCamera:
             if not s > 0:
                 raise SoftplotError(f"camera {name}: a priori sigma of {n} must be > 0")
             sig[INTRINSICS.index(n)] = float(s)
-        return cls(name, np.asarray(values, float).copy(), sig, pixel_size_mm)
+        return cls(name, np.asarray(values, float).copy(), sig, pixel_size_mm, model=model)
 
 
 @dataclass
@@ -153,6 +187,9 @@ class BundleData:
         Measured film coordinates, mm.
     sigma_xy : ndarray, shape (m, 2)
         Their standard errors, mm.
+    cov_xy : ndarray, shape (m,), optional
+        Covariance of x and y of every observation, mm^2 (correlated measurements, e.g.
+        least-squares matching); ``None`` or 0: uncorrelated.
     photo_fixed : ndarray of bool, shape (F,)
         Exterior orientation held fixed.
     check : ndarray of bool, shape (P,)
@@ -177,6 +214,7 @@ class BundleData:
     photo_fixed: np.ndarray | None = None
     check: np.ndarray | None = None
     series: list | None = None
+    cov_xy: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         F, P = len(self.photo_names), len(self.point_names)
@@ -205,6 +243,17 @@ class BundleData:
             raise SoftplotError("a photo refers to an unknown camera")
         if np.any(~(self.sigma_xy > 0)):
             raise SoftplotError("image standard errors must be > 0")
+        if self.cov_xy is not None:
+            self.cov_xy = np.broadcast_to(np.asarray(self.cov_xy, float), (m,)).copy()
+            rho = self.cov_xy / (self.sigma_xy[:, 0] * self.sigma_xy[:, 1])
+            if not np.all(np.abs(rho) < 1.0):
+                bad = int(np.flatnonzero(~(np.abs(rho) < 1.0))[0])
+                raise SoftplotError(
+                    f"observation {bad + 1}: covariance sxy gives |correlation| >= 1 "
+                    "(the 2x2 covariance must be positive definite)"
+                )
+            if not np.any(self.cov_xy):
+                self.cov_xy = None
         key = self.obs_photo * max(P, 1) + self.obs_point
         if np.unique(key).size != m:
             raise SoftplotError("a point is measured twice in the same photo")
@@ -248,7 +297,7 @@ def distortion(xb, yb, p):
     ----------
     xb, yb : ndarray (m,)
         Measured film coordinates reduced to the principal point, mm.
-    p : ndarray (m, 10) or (10,)
+    p : ndarray (m, 11) or (11,)
         :data:`INTRINSICS` per point.
 
     Returns
@@ -260,7 +309,7 @@ def distortion(xb, yb, p):
     dd_dk : ndarray (m, 2, 7)
         ``d(dx, dy) / d(k1, k2, k3, p1, p2, b1, b2)``.
     """
-    p = np.broadcast_to(p, (xb.size, 10))
+    p = np.broadcast_to(p, (xb.size, np.shape(p)[-1]))
     k1, k2, k3, p1, p2, b1, b2 = (p[:, i] for i in range(3, 10))
     r2 = xb * xb + yb * yb
     rad = r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -311,7 +360,7 @@ class _Model:
             if not data.photo_fixed[f]:
                 eo_idx[f] = np.arange(n, n + 6)
                 n += 6
-        in_idx = -np.ones((C, 10), np.int64)
+        in_idx = -np.ones((C, len(INTRINSICS)), np.int64)
         for c, cam in enumerate(data.cameras):
             act = cam.sigma != 0
             in_idx[c, act] = np.arange(n, n + act.sum())
@@ -334,7 +383,7 @@ class _Model:
             w = np.isfinite(cam.sigma) & (cam.sigma > 0)
             pri_i.append(in_idx[c, w])
             pri_s.append(cam.sigma[w])
-            pri_v.append(np.flatnonzero(w) + 10 * c)
+            pri_v.append(np.flatnonzero(w) + len(INTRINSICS) * c)
         self.pri_idx = np.concatenate(pri_i) if pri_i else np.zeros(0, np.int64)
         self.pri_sig = np.concatenate(pri_s) if pri_s else np.zeros(0)
         self.pri_flat = np.concatenate(pri_v) if pri_v else np.zeros(0, np.int64)
@@ -347,28 +396,101 @@ class _Model:
         self.cp_w = 1.0 / s  # 0 where not weighted
         self.cp_val = np.where(wt, data.control, 0.0)[self.cp_idx]
         self.isig = 1.0 / data.sigma_xy
+        #: whitening matrices L^-1 (m, 2, 2) of correlated observations (Sigma = L L')
+        self.wh = None
+        if data.cov_xy is not None:
+            sx, sy, sxy = data.sigma_xy[:, 0], data.sigma_xy[:, 1], data.cov_xy
+            l21 = sxy / sx
+            l22 = np.sqrt(sy * sy - l21 * l21)
+            wh = np.zeros((sx.size, 2, 2))
+            wh[:, 0, 0] = 1.0 / sx
+            wh[:, 1, 1] = 1.0 / l22
+            wh[:, 1, 0] = -l21 / (sx * l22)
+            self.wh = wh
+        fwd = np.array([c.model == "forward" for c in data.cameras], bool)
+        self.forward = fwd[data.photo_camera[data.obs_photo]] if fwd.size else np.zeros(0, bool)
+        self.all_forward = bool(self.forward.all())
+        self.all_inverse = not self.forward.any()
+
+    def whiten(self, a: np.ndarray) -> np.ndarray:
+        """Whiten (m, 2, ...) residual rows or Jacobian blocks."""
+        if self.wh is None:
+            return a * self.isig.reshape(self.isig.shape + (1,) * (a.ndim - 2))
+        return np.einsum("mij,mj...->mi...", self.wh, a)
+
+    def unwhiten(self, r: np.ndarray) -> np.ndarray:
+        """Residuals (m, 2) in mm from whitened ones."""
+        if self.wh is None:
+            return r * self.data.sigma_xy
+        L = np.linalg.inv(self.wh)
+        return np.einsum("mij,mj->mi", L, r)
 
     @property
     def n_prior_rows(self) -> int:
         return int(self.pri_idx.size + np.count_nonzero(self.cp_w))
 
+    def _subsets(self):
+        """(index, forward) pairs covering the observations, one per lens model."""
+        if self.all_inverse:
+            return [(slice(None), False)]
+        if self.all_forward:
+            return [(slice(None), True)]
+        return [(np.flatnonzero(~self.forward), False), (np.flatnonzero(self.forward), True)]
+
     def evaluate(self, state: _State, jacobian: bool) -> Evaluation:
         d = self.data
         ph, pt = d.obs_photo, d.obs_point
         cam = d.photo_camera[ph]
-        P = state.intr[cam]  # (m,10)
+        P = state.intr[cam]  # (m,11)
         M = state.M[ph]
         dX = state.XYZ[pt] - state.X0[ph]
         u = np.einsum("mij,mj->mi", M, dX)
         w = u[:, 2]
         qx, qy = u[:, 0] / w, u[:, 1] / w
         c, x0, y0 = P[:, 0], P[:, 1], P[:, 2]
-        xb, yb = d.xy[:, 0] - x0, d.xy[:, 1] - y0
-        dist, dJ, dK = distortion(xb, yb, P)
-        r = np.empty((w.size, 2))
-        r[:, 0] = x0 + dist[:, 0] - c * qx - d.xy[:, 0]
-        r[:, 1] = y0 + dist[:, 1] - c * qy - d.xy[:, 1]
-        r *= self.isig
+        s_a = 1.0 + P[:, 10]  # aspect: xa = (1 + a) xb
+        m = w.size
+        raw = np.empty((m, 2))
+        if jacobian:
+            Jc = np.zeros((m, 2, 6 + len(INTRINSICS)))
+            C2 = np.empty((m, 2, 2))  # d residual / d (pinhole point)
+        for idx, fwd in self._subsets():
+            Pi, si = P[idx], s_a[idx]
+            xp, yp = -c[idx] * qx[idx], -c[idx] * qy[idx]  # pinhole point, reduced (mm)
+            if not fwd:
+                # residual = pinhole - (xa - d(xa)), xa = ((1 + a) (x - x0), y - y0)
+                xb = d.xy[idx, 0] - x0[idx]
+                xa, ya = si * xb, d.xy[idx, 1] - y0[idx]
+                dist, dJ, dK = distortion(xa, ya, Pi)
+                raw[idx, 0] = xp - xa + dist[:, 0]
+                raw[idx, 1] = yp - ya + dist[:, 1]
+                if jacobian:
+                    T = -dJ
+                    T[:, 0, 0] += 1.0
+                    T[:, 1, 1] += 1.0  # I - d(dx)/dx
+                    C2[idx] = np.eye(2)
+                    Jc[idx, :, 7] = T[:, :, 0] * si[:, None]
+                    Jc[idx, :, 8] = T[:, :, 1]
+                    Jc[idx, :, 9:16] = dK
+                    Jc[idx, :, 16] = -T[:, :, 0] * xb[:, None]
+            else:
+                # residual = (x0 + (xp + dx(xp)) / (1 + a), y0 + yp + dy(xp)) - measured
+                dist, dJ, dK = distortion(xp, yp, Pi)
+                xa, ya = xp + dist[:, 0], yp + dist[:, 1]
+                raw[idx, 0] = x0[idx] + xa / si - d.xy[idx, 0]
+                raw[idx, 1] = y0[idx] + ya - d.xy[idx, 1]
+                if jacobian:
+                    D = dJ.copy()
+                    D[:, 0, 0] += 1.0
+                    D[:, 1, 1] += 1.0
+                    D[:, 0, :] /= si[:, None]
+                    C2[idx] = D
+                    Jc[idx, 0, 7] = 1.0
+                    Jc[idx, 1, 8] = 1.0
+                    Jc[idx, :, 9:16] = dK
+                    Jc[idx, 0, 9:16] /= si[:, None]
+                    Jc[idx, 0, 16] = -xa / (si * si)
+        r = self.whiten(raw)
         cam_prior = None
         if self.pri_idx.size:
             vals = state.intr.ravel()[self.pri_flat]
@@ -381,30 +503,21 @@ class _Model:
             pt_prior = (self.cp_idx, rr, J)
         if not jacobian:
             return Evaluation(r, cam_prior=cam_prior, pt_prior=pt_prior)
-        m = w.size
         A = np.zeros((m, 2, 3))  # d(-c q)/du
         A[:, 0, 0] = -c / w
         A[:, 0, 2] = c * qx / w
         A[:, 1, 1] = -c / w
         A[:, 1, 2] = c * qy / w
+        if not self.all_inverse:
+            A = np.matmul(C2, A)
         Jp = np.matmul(A, M)
-        Jc = np.empty((m, 2, 16))
         Jc[:, :, 0:3] = -Jp
         # rotation increment: du/dd = -[u]x
         Jc[:, :, 3] = A[:, :, 2] * u[:, 1, None] - A[:, :, 1] * u[:, 2, None]
         Jc[:, :, 4] = A[:, :, 0] * u[:, 2, None] - A[:, :, 2] * u[:, 0, None]
         Jc[:, :, 5] = A[:, :, 1] * u[:, 0, None] - A[:, :, 0] * u[:, 1, None]
-        Jc[:, 0, 6] = -qx
-        Jc[:, 1, 6] = -qy
-        # x0, y0 act through the prediction and through the reduced point
-        Jc[:, 0, 7] = 1.0 - dJ[:, 0, 0]
-        Jc[:, 1, 7] = -dJ[:, 1, 0]
-        Jc[:, 0, 8] = -dJ[:, 0, 1]
-        Jc[:, 1, 8] = 1.0 - dJ[:, 1, 1]
-        Jc[:, :, 9:16] = dK
-        Jc *= self.isig[:, :, None]
-        Jp *= self.isig[:, :, None]
-        return Evaluation(r, Jc, Jp, cam_prior, pt_prior)
+        Jc[:, :, 6] = -np.einsum("mij,mj->mi", C2, np.column_stack([qx, qy]))
+        return Evaluation(r, self.whiten(Jc), self.whiten(Jp), cam_prior, pt_prior)
 
     def retract(self, state: _State, d_cam, d_pts) -> _State:
         de = np.append(d_cam, 0.0)
@@ -616,6 +729,7 @@ class BundleResult:
                     "correlation": self.intrinsics_corr[c],
                     "max_correlation_with_eo": self.correlation_eo_max[c],
                     "pixel_size_mm": cam.pixel_size_mm,
+                    "lens": cam.model,
                 }
             )
         photos = []
@@ -767,7 +881,7 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
     else:
         d_model = d
     model = _Model(d_model, point_free)
-    intr0 = np.array([c.values for c in d.cameras], float).reshape(-1, 10)
+    intr0 = np.array([c.values for c in d.cameras], float).reshape(-1, len(INTRINSICS))
     state = _State(X00, M0, intr0, XYZ0)
     res = levenberg_marquardt(model, state, opt.lm)
     st: _State = res.state
@@ -794,14 +908,14 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
     redundancy = n_obs - n_unk
     sigma0 = math.sqrt(2 * cost / redundancy) if redundancy > 0 else float("nan")
     var = sigma0**2 if redundancy > 0 else 1.0
-    resid = ev.r * d.sigma_xy  # mm
+    resid = model.unwhiten(ev.r)  # mm
     crit = critical_value(opt.alpha0)
     warnings: list[str] = []
     if not res.converged:
         warnings.append(f"not converged: {res.message}")
     C = len(d.cameras)
     m = d.obs_photo.size
-    in_std = np.zeros((C, 10))
+    in_std = np.zeros((C, len(INTRINSICS)))
     eo_std = np.zeros((F, 6))
     XYZ_cov = np.zeros((P, 3, 3))
     corr_list = [{"names": [], "matrix": []} for _ in range(C)]

@@ -6,15 +6,22 @@ Files (CSV with a header row, UTF-8; TOML for the cameras):
   or a path relative to the folder) giving the start values; overrides ``c``, ``x0``, ``y0``
   (mm), ``k1`` .. ``b2``; ``free = [...]`` parameter names; ``[camera.sigma]`` a priori
   standard errors (weighted parameters, mm units as the values); ``sigma_image_um`` (default
-  standard error of the image coordinates, default 2.0); ``pixel_size_um``.
+  standard error of the image coordinates, default 2.0); ``pixel_size_um``; ``lens``
+  (``"forward"``: distortion added to the projected point, the default when a distortion
+  parameter is free or weighted; ``"inverse"``: evaluated at the measured point, the
+  default otherwise).
 * ``photos.csv``: ``photo, camera`` and optional ``X0, Y0, Z0, omega, phi, kappa`` (angles in
   degrees; ``omega_gon`` ... or ``omega_rad`` ... headers select gon or radians; empty cells
   are initialised by resection / relative orientation), ``fixed`` (1/true: exterior
   orientation held), ``series`` (a label for ``softplot calibrate --series``).
-* ``observations.csv``: ``photo, point, x, y`` film mm, optional ``sx, sy`` (mm).
-* ``control.csv`` (optional): ``point, X, Y, Z`` and optional ``sX, sY, sZ`` (0 or empty sigma
-  with a value: fixed; empty value: that coordinate is not control) and ``type``
+* ``observations.csv``: ``photo, name, x, y`` film mm, optional ``sx, sy`` (mm) and ``sxy``
+  (their covariance, mm^2). ``name`` is the point's name (the older header ``point`` is
+  still read).
+* ``control.csv`` (optional): ``name, X, Y, Z`` (or ``point``) and optional ``sX, sY, sZ``
+  (0 or empty sigma with a value: fixed; empty value: that coordinate is not control) and ``type``
   (``control``, default, or ``check``).
+* ``points.csv`` (optional): ``name, X, Y, Z`` approximate object coordinates (start values,
+  not control).
 
 :func:`read_project` returns a :class:`~softplot.orientation.bundle.BundleData`;
 :func:`write_project` writes one (used for synthetic projects); neither overwrites input.
@@ -36,7 +43,7 @@ from softplot.orientation.bundle import INTRINSICS, BundleCamera, BundleData
 
 __all__ = ["read_project", "write_project", "read_cameras"]
 
-FILES = ("cameras.toml", "photos.csv", "observations.csv", "control.csv")
+FILES = ("cameras.toml", "photos.csv", "observations.csv", "control.csv", "points.csv")
 
 
 def _rows(path: Path, required: tuple) -> list[dict]:
@@ -47,12 +54,19 @@ def _rows(path: Path, required: tuple) -> list[dict]:
         if rd.fieldnames is None:
             raise SoftplotError(f"{path}: empty file (a header row is required)")
         fields = [f.strip() for f in rd.fieldnames]
+        # one column name for a point everywhere: ``name`` (the older ``point`` is still read)
+        alias = "name" in required and "name" not in fields and "point" in fields
+        if alias:
+            fields = ["name" if f == "point" else f for f in fields]
         miss = [r for r in required if r not in fields]
         if miss:
             raise SoftplotError(f"{path}: missing column(s) {', '.join(miss)}")
         out = []
         for row in rd:
-            out.append({k.strip(): (v or "").strip() for k, v in row.items() if k is not None})
+            r = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            if alias:
+                r["name"] = r.pop("point")
+            out.append(r)
         return out
 
 
@@ -85,7 +99,7 @@ def read_cameras(path: Path) -> list[BundleCamera]:
         name = str(t.get("name", "")).strip()
         if not name:
             raise SoftplotError(f"{where}: missing name")
-        vals = np.zeros(10)
+        vals = np.zeros(len(INTRINSICS))
         cert = t.get("certificate")
         if cert:
             p = path.parent / str(cert)
@@ -98,7 +112,7 @@ def read_cameras(path: Path) -> list[BundleCamera]:
                 )
             vals[:3] = cam.c, cam.x0, cam.y0
             if d.model == "brown":
-                vals[3:] = d.k1, d.k2, d.k3, d.p1, d.p2, d.b1, d.b2
+                vals[3:10] = d.k1, d.k2, d.k3, d.p1, d.p2, d.b1, d.b2
         for j, n in enumerate(INTRINSICS):
             if n in t:
                 try:
@@ -114,13 +128,25 @@ def read_cameras(path: Path) -> list[BundleCamera]:
         if not isinstance(sig, dict):
             raise SoftplotError(f"{where}: [camera.sigma] must be a table")
         px = t.get("pixel_size_um")
+        weighted = {k: float(v) for k, v in sig.items()}
+        lens = t.get("lens")
+        if lens is None:  # self-calibration of the lens: the forward model (unbiased sigma0)
+            lens = "forward" if (set(free) | set(weighted)) & set(INTRINSICS[3:]) else "inverse"
         bc = BundleCamera.build(
             name,
             vals,
             free,
-            {k: float(v) for k, v in sig.items()},
+            weighted,
             None if px is None else float(px) / 1000.0,
+            model=str(lens),
         )
+        if "image_width_px" in t or "image_height_px" in t:
+            try:
+                bc.image_size = (int(t["image_width_px"]), int(t["image_height_px"]))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise SoftplotError(
+                    f"{where}: image_width_px and image_height_px must be integers"
+                ) from exc
         bc.sigma_image_mm = float(t.get("sigma_image_um", 2.0)) / 1000.0
         if not bc.sigma_image_mm > 0:
             raise SoftplotError(f"{where}: sigma_image_um must be > 0")
@@ -165,34 +191,35 @@ def read_project(folder: str | Path) -> BundleData:
     if len(set(names)) != len(names):
         raise SoftplotError("photos.csv: duplicate photo names")
     ph_idx = {n: i for i, n in enumerate(names)}
-    orow = _rows(root / "observations.csv", ("photo", "point", "x", "y"))
+    orow = _rows(root / "observations.csv", ("photo", "name", "x", "y"))
     if not orow:
         raise SoftplotError("observations.csv: no observations")
     pt_idx: dict[str, int] = {}
-    op, oq, xy, sxy = [], [], [], []
+    op, oq, xy, sxy, cxy = [], [], [], [], []
     for k, r in enumerate(orow):
         where = f"observations.csv row {k + 2}"
         if r["photo"] not in ph_idx:
             raise SoftplotError(f"{where}: unknown photo {r['photo']!r}")
         f = ph_idx[r["photo"]]
         op.append(f)
-        oq.append(pt_idx.setdefault(r["point"], len(pt_idx)))
+        oq.append(pt_idx.setdefault(r["name"], len(pt_idx)))
         xy.append([_num(r["x"], where, None), _num(r["y"], where, None)])
         if xy[-1][0] is None or xy[-1][1] is None:
             raise SoftplotError(f"{where}: x and y are required")
         s0 = cams[pcam[f]].sigma_image_mm
         sxy.append([_num(r.get("sx", ""), where, s0), _num(r.get("sy", ""), where, s0)])
+        cxy.append(_num(r.get("sxy", ""), where, 0.0))
     P = len(pt_idx)
     control = np.full((P, 3), np.nan)
     csig = np.full((P, 3), np.nan)
     check = np.zeros(P, bool)
     cpath = root / "control.csv"
     if cpath.is_file():
-        for k, r in enumerate(_rows(cpath, ("point", "X", "Y", "Z"))):
+        for k, r in enumerate(_rows(cpath, ("name", "X", "Y", "Z"))):
             where = f"control.csv row {k + 2}"
-            if r["point"] not in pt_idx:
+            if r["name"] not in pt_idx:
                 continue  # control not measured in any photo
-            j = pt_idx[r["point"]]
+            j = pt_idx[r["name"]]
             for a, (cn, sn) in enumerate((("X", "sX"), ("Y", "sY"), ("Z", "sZ"))):
                 v = _num(r.get(cn, ""), where)
                 s = _num(r.get(sn, ""), where, 0.0)
@@ -207,6 +234,13 @@ def read_project(folder: str | Path) -> BundleData:
     point_names = [None] * P
     for n, j in pt_idx.items():
         point_names[j] = n
+    XYZ = np.full((P, 3), np.nan)
+    ppath = root / "points.csv"
+    if ppath.is_file():  # approximate object coordinates (optional)
+        for k, r in enumerate(_rows(ppath, ("name", "X", "Y", "Z"))):
+            if r["name"] in pt_idx:
+                where = f"points.csv row {k + 2}"
+                XYZ[pt_idx[r["name"]]] = [_num(r[a], where) for a in ("X", "Y", "Z")]
     data = BundleData(
         cameras=cams,
         photo_names=names,
@@ -214,13 +248,14 @@ def read_project(folder: str | Path) -> BundleData:
         X0=np.array(X0),
         angles=np.array(ang),
         point_names=point_names,
-        XYZ=np.full((P, 3), np.nan),
+        XYZ=XYZ,
         control=control,
         control_sigma=csig,
         obs_photo=np.array(op),
         obs_point=np.array(oq),
         xy=np.array(xy, float),
         sigma_xy=np.array(sxy, float),
+        cov_xy=np.array(cxy, float),
         photo_fixed=np.array(fixed),
         check=check,
     )
@@ -243,12 +278,16 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
             lines.append(f"{n} = {float(v)!r}")
         free = [n for n, s in zip(INTRINSICS, c.sigma, strict=True) if np.isinf(s)]
         lines.append("free = [" + ", ".join(f'"{n}"' for n in free) + "]")
+        lines.append(f'lens = "{c.model}"')
         sim = getattr(c, "sigma_image_mm", None)
         if sim is None:
             sim = float(np.median(data.sigma_xy))
         lines.append(f"sigma_image_um = {sim * 1000.0!r}")
         if c.pixel_size_mm:
             lines.append(f"pixel_size_um = {c.pixel_size_mm * 1000.0!r}")
+        if c.image_size:
+            lines.append(f"image_width_px = {int(c.image_size[0])}")
+            lines.append(f"image_height_px = {int(c.image_size[1])}")
         w = {n: s for n, s in zip(INTRINSICS, c.sigma, strict=True) if 0 < s < np.inf}
         if w:
             lines.append("[camera.sigma]")
@@ -274,7 +313,8 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
             )
     with open(root / "observations.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow(["photo", "point", "x", "y", "sx", "sy"])
+        cov = data.cov_xy
+        w.writerow(["photo", "name", "x", "y", "sx", "sy"] + ([] if cov is None else ["sxy"]))
         for o in range(data.obs_photo.size):
             w.writerow(
                 [
@@ -285,14 +325,22 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
                     repr(float(data.sigma_xy[o, 0])),
                     repr(float(data.sigma_xy[o, 1])),
                 ]
+                + ([] if cov is None else [repr(float(cov[o]))])
             )
     with open(root / "control.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow(["point", "X", "Y", "Z", "sX", "sY", "sZ", "type"])
+        w.writerow(["name", "X", "Y", "Z", "sX", "sY", "sZ", "type"])
         for p, n in enumerate(data.point_names):
             if not np.any(np.isfinite(data.control[p])):
                 continue
             v = ["" if not np.isfinite(x) else repr(float(x)) for x in data.control[p]]
             s = ["" if not np.isfinite(x) else repr(float(x)) for x in data.control_sigma[p]]
             w.writerow([n, *v, *s, "check" if data.check[p] else "control"])
+    if np.any(np.isfinite(data.XYZ)):
+        with open(root / "points.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["name", "X", "Y", "Z"])
+            for p, n in enumerate(data.point_names):
+                if np.all(np.isfinite(data.XYZ[p])):
+                    w.writerow([n, *(repr(float(x)) for x in data.XYZ[p])])
     return root

@@ -34,6 +34,7 @@ _UNITS = {
     "p2": "mm^-1",
     "b1": "",
     "b2": "",
+    "a": "",
 }
 
 
@@ -77,7 +78,7 @@ def text_report(
     )
     L.append("")
     for c, cam in enumerate(d.cameras):
-        L.append(f"Camera {cam.name}")
+        L.append(f"Camera {cam.name} (lens model: {cam.model})")
         L.append("-" * (7 + len(cam.name)))
         for i, n in enumerate(INTRINSICS):
             L.append(f"  {n:<3} {_fmt(res.intrinsics[c, i], res.intrinsics_std[c, i], _UNITS[n])}")

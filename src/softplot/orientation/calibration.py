@@ -2,7 +2,7 @@
 
 The test field's target coordinates are control with their standard errors (weighted, or
 fixed with sigma 0); the photos' exterior orientations and the camera's interior orientation
-(any subset of ``c, x0, y0, k1, k2, k3, p1, p2, b1, b2``; the others held at their certificate
+(any subset of ``c, x0, y0, k1, k2, k3, p1, p2, b1, b2, a``; the others held at their certificate
 values - "arbitrary unknowns held constant") are adjusted by the bundle
 (:func:`softplot.orientation.bundle.bundle_adjust`).
 
@@ -14,6 +14,7 @@ standard deviation.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,7 @@ def subset_photos(data: BundleData, keep) -> BundleData:
     pmap[pts] = np.arange(pts.size)
     return BundleData(
         cameras=[
-            type(c)(c.name, c.values.copy(), c.sigma.copy(), c.pixel_size_mm, c.sigma_image_mm)
+            dataclasses.replace(c, values=c.values.copy(), sigma=c.sigma.copy())
             for c in data.cameras
         ],
         photo_names=[n for n, k in zip(data.photo_names, mask, strict=True) if k],
@@ -62,6 +63,7 @@ def subset_photos(data: BundleData, keep) -> BundleData:
         obs_point=pmap[data.obs_point[o]],
         xy=data.xy[o].copy(),
         sigma_xy=data.sigma_xy[o].copy(),
+        cov_xy=None if data.cov_xy is None else data.cov_xy[o].copy(),
         photo_fixed=data.photo_fixed[mask].copy(),
         check=data.check[pts].copy(),
         series=None
