@@ -26,8 +26,10 @@ from softplot.cli import main
 from softplot.errors import CertificateError, SoftplotError
 
 BUILTINS = [
+    "aerial-23x47",
     "hasselblad-mk70",
     "pentax-645",
+    "plate-13x18-reseau",
     "rollei-6006",
     "rollei-6008",
     "wild-rc10",
