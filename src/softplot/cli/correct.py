@@ -4,6 +4,7 @@ Spellings::
 
     softplot correct SCAN --camera C [--detection DET.json] [--method M]
                           --points IN.csv --out OUT.csv [--to film|photo]
+    softplot correct DET.json --camera C [--method M] --points IN.csv --out OUT.csv
     softplot correct SCAN --camera C [--detection DET.json] [--method M]
                           --resample OUT.tif [--pixel-size MICRONS]
     softplot correct compare SCAN|DET.json --camera C [--json OUT.json]
@@ -59,6 +60,7 @@ def command() -> None:
 
     \b
     softplot correct SCAN --camera C --points IN.csv --out OUT.csv [--to film|photo]
+    softplot correct DET.json --camera C --points IN.csv --out OUT.csv  (no scan needed)
     softplot correct SCAN --camera C --resample OUT.tif [--pixel-size MICRONS]
     softplot correct compare SCAN|DET.json --camera C
 
@@ -109,6 +111,12 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
     )
 
     scan_p = Path(scan)
+    if scan_p.suffix.lower() == ".json":  # a detection alone: no scan needed for points
+        if detection is not None:
+            raise SoftplotError("give the detection either as SCAN or as --detection, not both")
+        if resample_out is not None:
+            raise SoftplotError("--resample needs the scan itself, not its detection JSON")
+        detection, scan_p = str(scan_p), None
     if points is None and resample_out is None:
         raise SoftplotError(
             "nothing to do: give --points IN.csv --out OUT.csv or --resample OUT.tif"
@@ -117,7 +125,8 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
         raise SoftplotError("--points needs --out OUT.csv")
     if out is not None and points is None:
         raise SoftplotError("--out needs --points IN.csv")
-    inputs = [scan_p] + [Path(p) for p in (detection, points) if p is not None]
+    inputs = [p for p in [scan_p] if p is not None]
+    inputs += [Path(p) for p in (detection, points) if p is not None]
     outputs = [Path(p) for p in (out, resample_out) if p is not None]
     for o in outputs:
         for i in inputs:
