@@ -272,7 +272,8 @@ class BundleData:
 class BundleOptions:
     """Bundle settings.
 
-    ``datum``: "auto" (control if it fixes the datum, else free), "control" or "free".
+    ``datum``: "auto" (control if it fixes the datum - seven or more control coordinates, or
+    fixed exterior orientations - else free), "control" or "free".
     ``scale_distance``: ``(point_a, point_b, distance)`` fixing the scale of a free network.
     ``alpha0``: data-snooping significance level (3.29 for 0.001).
     ``corr_warn``: correlation magnitude that raises a warning.
@@ -857,8 +858,10 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
     if datum not in ("auto", "control", "free"):
         raise SoftplotError(f"unknown datum {datum!r}; use auto, control or free")
     n_ctl = int(used.sum())
+    n_fixed = int(d.photo_fixed.sum())
     if datum == "auto":
-        datum = "control" if n_ctl >= 7 else "free"
+        # control, or the exterior orientations held (a fixed-pose rig: two photos fix it)
+        datum = "control" if n_ctl >= 7 or n_fixed >= 2 or (n_fixed and n_ctl) else "free"
     point_free = np.ones((P, 3), bool)
     XYZ0 = d.XYZ.copy()
     if datum == "control":
@@ -994,7 +997,13 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
         redundancy=int(redundancy),
         n_observations=int(n_obs),
         n_unknowns=int(n_unk),
-        datum=datum if opt.scale_distance is None or datum != "free" else "free+distance",
+        datum=(
+            "free+distance"
+            if datum == "free" and opt.scale_distance is not None
+            else "fixed-eo"
+            if datum == "control" and n_ctl < 7
+            else datum
+        ),
         cost=cost,
         initial_cost=res.initial_cost,
         iterations=res.iterations,

@@ -10,7 +10,13 @@
 3. when nothing is known at all (a free network without approximations), the pair of photos
    sharing most points is relatively oriented (dependent pair, base 1 along the left photo's
    x axis, :func:`softplot.orientation.relative_orientation`): the left photo's frame becomes
-   the object frame, then step 2 continues.
+   the object frame, then step 2 continues;
+4. when step 2 stops short with only a minimal control datum (three control points, or
+   control seen by a few photos: some photo sees fewer than four known points), the block is
+   built in a model frame by steps 3 and 2 - the relative orientation of the best pair,
+   chained through the block by resections and intersections - and moved onto the control
+   by the 7-parameter similarity fitted to the control points it contains (at least three
+   not on a line); then step 2 finishes.
 
 Image coordinates are reduced to the camera's principal point; lens distortion is ignored at
 this stage (the bundle estimates it).
@@ -20,8 +26,11 @@ from __future__ import annotations
 
 import numpy as np
 
+import dataclasses
+
 from softplot.errors import SoftplotError
-from softplot.orientation.bundle import BundleData
+from softplot.orientation.bundle import BundleData, _helmert_to
+from softplot.geometry.rotation import angles_from_matrix, rotation_matrix
 from softplot.orientation.intersection import intersect
 from softplot.orientation.relative import relative_orientation
 from softplot.orientation.resection import resect
@@ -47,6 +56,57 @@ def initialize(data: BundleData, max_rounds: int = 50) -> BundleData:
     SoftplotError
         A photo or point that cannot be reached (names it).
     """
+    try:
+        return _initialize(data, max_rounds)
+    except SoftplotError as first:
+        if not _model_frame_start(data, max_rounds):
+            raise first from None
+    return _initialize(data, max_rounds)
+
+
+def _model_frame_start(d: BundleData, max_rounds: int) -> bool:
+    """Step 4: the block in a model frame from chained relative orientations, moved onto the
+    control by a 7-parameter similarity. Fills only what is missing; False if impossible."""
+    ctl = np.all(np.isfinite(d.control), axis=1) & ~d.check
+    if ctl.sum() < 3:
+        return False
+    F, P = len(d.photo_names), len(d.point_names)
+    m = dataclasses.replace(
+        d,
+        X0=np.full((F, 3), np.nan),
+        angles=np.full((F, 3), np.nan),
+        XYZ=np.full((P, 3), np.nan),
+        control=np.full((P, 3), np.nan),
+        control_sigma=np.full((P, 3), np.nan),
+        photo_fixed=np.zeros(F, bool),
+    )
+    try:
+        _relative_start(m)
+        _initialize(m, max_rounds, partial=True)
+    except SoftplotError:
+        return False
+    both = ctl & np.all(np.isfinite(m.XYZ), axis=1)
+    if both.sum() < 3:
+        return False
+    src, dst = m.XYZ[both], d.control[both]
+    sv = np.linalg.svd(src - src.mean(0), compute_uv=False)
+    if sv[1] < 1e-6 * sv[0]:
+        return False  # control on a line: the similarity is undetermined
+    s, R, t = _helmert_to(src, dst)
+    eo = np.all(np.isfinite(m.X0), axis=1)
+    miss_eo = eo & ~(np.all(np.isfinite(d.X0), axis=1) & np.all(np.isfinite(d.angles), axis=1))
+    M = rotation_matrix(m.angles[eo, 0], m.angles[eo, 1], m.angles[eo, 2]) @ R.T
+    X0 = s * m.X0[eo] @ R.T + t
+    Xf = np.full((F, 3), np.nan)
+    Af = np.full((F, 3), np.nan)
+    Xf[eo], Af[eo] = X0, np.column_stack(angles_from_matrix(M))
+    d.X0[miss_eo], d.angles[miss_eo] = Xf[miss_eo], Af[miss_eo]
+    pts = np.all(np.isfinite(m.XYZ), axis=1) & ~np.all(np.isfinite(d.XYZ), axis=1)
+    d.XYZ[pts] = s * m.XYZ[pts] @ R.T + t
+    return bool(miss_eo.any() or pts.any())
+
+
+def _initialize(data: BundleData, max_rounds: int, partial: bool = False) -> BundleData:
     d = data
     P = len(d.point_names)
     ctl_full = np.all(np.isfinite(d.control), axis=1)
@@ -123,6 +183,8 @@ def initialize(data: BundleData, max_rounds: int = 50) -> BundleData:
             return d
         if not progress:
             break
+    if partial:
+        return d
     bad_f = [d.photo_names[f] for f in np.flatnonzero(~eo_ok)]
     bad_p = [d.point_names[p] for p in np.flatnonzero(~pt_ok)]
     raise SoftplotError(
