@@ -24,13 +24,13 @@ this stage (the bundle estimates it).
 
 from __future__ import annotations
 
-import numpy as np
-
 import dataclasses
 
+import numpy as np
+
 from softplot.errors import SoftplotError
-from softplot.orientation.bundle import BundleData, _helmert_to
 from softplot.geometry.rotation import angles_from_matrix, rotation_matrix
+from softplot.orientation.bundle import BundleData, _helmert_to
 from softplot.orientation.intersection import intersect
 from softplot.orientation.relative import relative_orientation
 from softplot.orientation.resection import resect
