@@ -15,9 +15,9 @@ def output_options(plots_help: str = "Write residual plots (PNG) into this folde
     """The ``--json OUT``, ``--report OUT`` and ``--plots DIR`` options (in that order)."""
 
     def deco(f):
-        f = click.option(
-            "--plots", "plots_dir", type=click.Path(file_okay=False), help=plots_help
-        )(f)
+        f = click.option("--plots", "plots_dir", type=click.Path(file_okay=False), help=plots_help)(
+            f
+        )
         f = click.option(
             "--report",
             "report_out",
@@ -137,3 +137,26 @@ def parse_free(text: str | None):
     if bad:
         raise SoftplotError(f"--free: unknown parameter(s) {bad}; use {', '.join(INTRINSICS)}")
     return names
+
+
+def write_residuals_csv(res, path) -> None:
+    """Every image observation's residual of a bundle result as CSV (header row)."""
+    import csv
+
+    t = res.residual_table()
+    keys = list(t)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(keys)
+        for i in range(len(t["photo"])):
+            row = []
+            for k in keys:
+                v = t[k][i]
+                if isinstance(v, (float, np.floating)):
+                    row.append("" if not np.isfinite(v) else f"{float(v):.6g}")
+                elif isinstance(v, (bool, np.bool_)):
+                    row.append(int(v))
+                else:
+                    row.append(v)
+            w.writerow(row)
+    click.echo(f"wrote {path}", err=True)

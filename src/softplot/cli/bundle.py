@@ -16,6 +16,7 @@ from softplot.cli._bundle_common import (
     parse_free,
     project_inputs,
     write_json,
+    write_residuals_csv,
 )
 from softplot.errors import SoftplotError
 
@@ -58,6 +59,12 @@ from softplot.errors import SoftplotError
     help="Data-snooping significance level.",
 )
 @click.option("--max-iterations", type=int, default=100, show_default=True)
+@click.option(
+    "--residuals",
+    "residuals_out",
+    type=click.Path(dir_okay=False),
+    help="Write every image residual (um, px, redundancy numbers, w) to a CSV file.",
+)
 def command(
     project,
     bal,
@@ -70,6 +77,7 @@ def command(
     angle_unit,
     alpha,
     max_iterations,
+    residuals_out,
 ):
     """Bundle adjustment of PROJECT (folder, see docs/bundle.md) or of a BAL file (--bal)."""
     if (project is None) == (bal is None):
@@ -104,7 +112,7 @@ def command(
     from softplot.orientation.bundle_report import text_report
 
     inputs = project_inputs(project)
-    for o in (json_out, report_out):
+    for o in (json_out, report_out, residuals_out):
         guard_output(o, inputs)
     data = read_project(project)
     apply_free(data, parse_free(free))
@@ -126,4 +134,6 @@ def command(
     emit_report(txt, report_out)
     if json_out:
         write_json(res.to_json(), json_out)
+    if residuals_out:
+        write_residuals_csv(res, residuals_out)
     emit_plots(res, plots_dir)

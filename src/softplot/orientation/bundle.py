@@ -711,6 +711,81 @@ class BundleResult:
             for o in order
         ]
 
+    def _pixel_of_obs(self) -> np.ndarray:
+        """(m,) pixel size (mm) of every observation's camera, NaN when unknown."""
+        px = np.array([c.pixel_size_mm or np.nan for c in self.data.cameras], float)
+        return px[self.data.photo_camera[self.data.obs_photo]]
+
+    def residual_table(self) -> dict:
+        """Every image observation: photo, point, residual (um, px), redundancy numbers and
+        Baarda's w per coordinate, flag - as columns (lists / arrays of length m)."""
+        d = self.data
+        v_um = self.residuals_mm * 1000.0
+        v_px = self.residuals_mm / self._pixel_of_obs()[:, None]
+        return {
+            "photo": [d.photo_names[f] for f in d.obs_photo],
+            "point": [d.point_names[p] for p in d.obs_point],
+            "vx_um": v_um[:, 0],
+            "vy_um": v_um[:, 1],
+            "vx_px": v_px[:, 0],
+            "vy_px": v_px[:, 1],
+            "rx": self.redundancy_numbers[:, 0],
+            "ry": self.redundancy_numbers[:, 1],
+            "wx": self.w[:, 0],
+            "wy": self.w[:, 1],
+            "flagged": self.flagged,
+        }
+
+    def _group_stats(self, key: np.ndarray, n_groups: int) -> dict:
+        v = self.residuals_mm * 1000.0
+        n = np.bincount(key, minlength=n_groups)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sx = np.sqrt(np.bincount(key, v[:, 0] ** 2, n_groups) / n)
+            sy = np.sqrt(np.bincount(key, v[:, 1] ** 2, n_groups) / n)
+            px = self._pixel_of_obs()
+            pxm = np.bincount(key, px, n_groups) / n
+        aw = np.nan_to_num(np.abs(self.w), nan=0.0).max(axis=1)
+        wmax = np.zeros(n_groups)
+        np.maximum.at(wmax, key, aw)
+        rsum = np.bincount(key, np.nansum(self.redundancy_numbers, axis=1), n_groups)
+        return {
+            "n": n,
+            "rms_x_um": sx,
+            "rms_y_um": sy,
+            "rms_xy_um": np.sqrt(sx**2 + sy**2),
+            "rms_xy_px": np.sqrt(sx**2 + sy**2) / 1000.0 / pxm,
+            "max_abs_w": wmax,
+            "flagged": np.bincount(key, self.flagged.astype(float), n_groups).astype(int),
+            "redundancy": rsum,
+        }
+
+    def photo_statistics(self) -> list:
+        """Per photo: observations, RMS residuals (um, px), max |w|, flagged, sum of the
+        redundancy numbers of its observations."""
+        st = self._group_stats(self.data.obs_photo, len(self.data.photo_names))
+        return [
+            {
+                "photo": n,
+                **{
+                    k: _f(v[i]) if k != "n" and k != "flagged" else int(v[i]) for k, v in st.items()
+                },
+            }
+            for i, n in enumerate(self.data.photo_names)
+        ]
+
+    def point_statistics(self) -> list:
+        """Per point: rays, RMS image residuals (um, px), max |w|, flagged observations."""
+        st = self._group_stats(self.data.obs_point, len(self.data.point_names))
+        return [
+            {
+                "point": n,
+                **{
+                    k: _f(v[i]) if k != "n" and k != "flagged" else int(v[i]) for k, v in st.items()
+                },
+            }
+            for i, n in enumerate(self.data.point_names)
+        ]
+
     def to_json(self) -> dict:
         """JSON-ready dict (keys documented in docs/bundle.md)."""
         d = self.data
@@ -780,6 +855,9 @@ class BundleResult:
             "critical_value": self.critical,
             "flagged": int(self.flagged.sum()),
             "largest_residuals": self.largest_residuals(),
+            "residuals": _records(self.residual_table()),
+            "photo_statistics": self.photo_statistics(),
+            "point_statistics": self.point_statistics(),
             "check_points_rms": self.check_rms(),
             "warnings": list(self.warnings),
             "cameras": cams,
@@ -790,6 +868,21 @@ class BundleResult:
 
 def _f(x):
     return None if not np.isfinite(x) else float(x)
+
+
+def _records(table: dict) -> list:
+    """Column table -> list of row dicts (NaN -> None)."""
+    keys = list(table)
+    cols = []
+    for k in keys:
+        c = table[k]
+        if isinstance(c, np.ndarray) and c.dtype.kind == "f":
+            cols.append([None if not np.isfinite(x) else float(x) for x in c.tolist()])
+        elif isinstance(c, np.ndarray):
+            cols.append(c.tolist())
+        else:
+            cols.append(list(c))
+    return [dict(zip(keys, row, strict=True)) for row in zip(*cols, strict=True)]
 
 
 def _status(s):

@@ -17,6 +17,10 @@ from softplot.orientation.bundle import EO_NAMES, INTRINSICS, BundleResult
 __all__ = ["text_report", "plot_residuals", "plot_histogram", "write_plots"]
 
 
+def _n(v, w=8):
+    return f"{'-':>{w}}" if v is None else f"{v:>{w}.2f}"
+
+
 def _fmt(v, s, unit=""):
     if s == 0:
         return f"{v:>14.6g} {unit:<6} (fixed)"
@@ -112,6 +116,20 @@ def text_report(
         L.append(
             f"  {n:<12}"
             + "".join(f"{v:>13.4f} +-{s:<7.2g}" for v, s in zip(vals, sds, strict=True))
+        )
+    L.append("")
+    L.append("Image residuals per photo (RMS; max |w|; flagged; sum of redundancy numbers)")
+    L.append("-" * 76)
+    L.append(
+        f"  {'photo':<12} {'n':>5} {'x um':>8} {'y um':>8} {'xy um':>8} {'xy px':>8} "
+        f"{'max|w|':>7} {'flag':>5} {'r':>8}"
+    )
+    for s in res.photo_statistics():
+        px = "-" if s["rms_xy_px"] is None else f"{s['rms_xy_px']:.3f}"
+        L.append(
+            f"  {s['photo']:<12} {s['n']:>5} {_n(s['rms_x_um'])} {_n(s['rms_y_um'])} "
+            f"{_n(s['rms_xy_um'])} {px:>8} {_n(s['max_abs_w'], 7)} {s['flagged']:>5} "
+            f"{_n(s['redundancy'])}"
         )
     L.append("")
     std = res.XYZ_std
