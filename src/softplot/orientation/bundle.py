@@ -5,17 +5,21 @@ observations are *film* mm (x right, y up, origin at the fiducial / reseau centr
 measured points; rotations ``M = Mk Mp Mo`` object -> photo axes.
 
 Observation equation of image point ``(x, y)`` (film mm) of object point ``X`` in a photo with
-projection centre ``X0``, rotation ``M`` and physical camera ``(c, x0, y0, k1..b2)``::
+projection centre ``X0``, rotation ``M`` and physical camera ``(c, x0, y0, k1..b2, a)``: the
+pinhole point ``xp = -c u1/u3, yp = -c u2/u3`` with ``u = M (X - X0)``, and the lens
+displacement ``(dx, dy)`` of :mod:`softplot.camera` (radial ``x (k1 r^2 + k2 r^4 + k3 r^6)``,
+decentering ``p1 (r^2 + 2 x^2) + 2 p2 x y`` / ``2 p1 x y + p2 (r^2 + 2 y^2)``, affinity/shear
+``b1 x + b2 y`` in x). Per camera, one of two lens models:
 
-    u = M (X - X0)
-    x = x0 + dx(xb, yb) - c u1 / u3,    y = y0 + dy(xb, yb) - c u2 / u3
+* ``forward``: the distortion is added to the projected point, ``xa = xp + dx(xp, yp)``,
+  predicted ``x = x0 + xa / (1 + a)``, ``y = y0 + yp + dy(xp, yp)``; the residual lives in
+  the measurement space (unbiased sigma0 whatever the distortion);
+* ``inverse``: the measured point is corrected, ``xa = (1 + a)(x - x0)``, ``ya = y - y0``,
+  residual ``(xp, yp) - ((xa, ya) - d(xa, ya))``.
 
-with ``xb = x - x0``, ``yb = y - y0`` the measured point reduced to the principal point and
-``(dx, dy)`` the lens displacement of :mod:`softplot.camera` (its sign convention: the photo
-coordinate is ``xb - dx``): radial ``xb (k1 r^2 + k2 r^4 + k3 r^6)``, decentering
-``p1 (r^2 + 2 xb^2) + 2 p2 xb yb`` / ``2 p1 xb yb + p2 (r^2 + 2 yb^2)`` and affinity/shear
-``b1 xb + b2 yb`` in x. The residual is ``predicted - measured`` (mm), whitened by the
-observation's standard error.
+``a`` is the aspect as PhotoModeler and DBAT define it (x scaled before the distortion). The
+residual is ``predicted - measured`` (mm), whitened by the observation's 2x2 covariance
+(Cholesky factor).
 
 Unknowns: per photo ``X0, Y0, Z0`` and a rotation increment (three small angles about the photo
 axes, ``M <- exp([d]x) M``: no gimbal lock; ``omega, phi, kappa`` and their standard deviations
