@@ -371,7 +371,8 @@ def score(det, truth: dict, bounds: dict) -> Score:
     * visible: truth state "visible" and not touched by dust or a scratch (``damaged``);
     * wrong row/col: a measured cross nearer (in px) to another cross's truth than to its
       own, or more than a quarter pitch from its own;
-    * gross: measured more than ``max(1 px, 8 x its bound)`` from its own truth (not wrong);
+    * gross: measured more than ``max(1 px, 8 x its bound)`` from its own truth (not wrong;
+      listed, and in the RMS like every other measured cross);
     * claimed: measured where the truth has no cross to see (dark, covered, outside).
     """
     sc = Score(result=True)
@@ -410,9 +411,8 @@ def score(det, truth: dict, bounds: dict) -> Score:
         if t["state"] != "visible" or t["damaged"]:
             continue  # cut or damaged: neither counted nor scored
         b = bounds.get(name, float("nan"))
-        if np.hypot(*e) > max(1.0, 8.0 * b if np.isfinite(b) else 1.0):
+        if np.hypot(*e) > max(1.0, 8.0 * b if np.isfinite(b) else 1.0):  # listed, and scored
             sc.gross.append(f"{name} {np.hypot(*e):.2f} px off (bound {b:.3f})")
-            continue
         sc.measured += 1
         C = (np.asarray(cov[i], float).reshape(2, 2) if cov is not None
              else np.diag(np.square(np.asarray(det.sigma_xy[i], float))))
@@ -438,13 +438,31 @@ def score(det, truth: dict, bounds: dict) -> Score:
     return sc
 
 
+def _loss_at_marks(diff: np.ndarray, truth: dict) -> float:
+    """RMS of ``diff`` (grey, pixel system) over the windows of the visible crosses (each
+    the square around the drawn cross plus 3 px): the JPEG loss where the marks are measured
+    (it concentrates at edges, so the whole image's would understate it)."""
+    h, w = diff.shape
+    acc, n = 0.0, 0
+    ppm = truth["dpi"] / 25.4
+    for m in truth["marks"]:
+        if m["state"] != "visible" or not m.get("arm_length_mm"):
+            continue
+        r = int(math.ceil(m["arm_length_mm"] / 2 * ppm)) + 3
+        x, y = int(round(m["x"])), int(round(m["y"]))
+        win = diff[max(0, y - r): min(h, y + r + 1), max(0, x - r): min(w, x + r + 1)]
+        acc += float(np.sum(np.square(win, dtype=np.float64)))
+        n += win.size
+    return math.sqrt(acc / n) if n else float(np.sqrt(np.mean(np.square(diff))))
+
+
 def render_case(case: Case):
     """(image as stored, truth, grey scene without marks or None, JPEG loss rms)."""
     img, truth = render_scan(case.camera, case.spec, case.seed)
     jpeg_rms = 0.0
     if case.jpeg:
         stored = _jpeg(img, case.jpeg)
-        jpeg_rms = float(np.sqrt(np.mean(np.square(_grey(stored) - _grey(img)))))
+        jpeg_rms = _loss_at_marks(_grey(stored) - _grey(img), truth)
         img = stored
     scene = None
     if case.spec.scene == "busy":
