@@ -39,6 +39,7 @@ COMMANDS = [
     "triangulate",
     "import_",
     "export",
+    "view",
 ]
 
 

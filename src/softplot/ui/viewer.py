@@ -1,0 +1,250 @@
+"""The plotter behind the page: a session, its motors, its pyramids and the floating mark.
+
+:class:`Viewer` owns the :class:`~softplot.pipeline.session.Session` (its journal), the
+:class:`~softplot.stereo.plotter.Plotter` wired to it and the motors (virtual: the left
+image's sampling position; GRBL: the instrument, whose reported position the screen then
+shows). Every operator input of the page arrives as a message (:meth:`Viewer.handle`) and goes
+through ``Plotter.cycle`` / ``drive_to`` / the recording calls; the answer is the state of the
+floating mark (:meth:`Viewer.state`).
+
+Coordinates: carriages in instrument mm (``X, Y`` the main carriage = the right scan point
+under the mark; the left scan point is ``X + BX + DX, Y + BY + DY``); ``left_px``/``right_px``
+the mark in each scan's pixels (pixel system: x right = column, y down = row, (0, 0) the
+centre of the top-left pixel), through each scan's :class:`softplot.correction.ScanFrame`;
+``object`` the model point (object units).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from softplot.errors import SoftplotError
+
+__all__ = ["Viewer", "open_motors", "VIEWS"]
+
+#: composite modes of the page
+VIEWS = ("anaglyph-dubois", "anaglyph-pure", "anaglyph-grey", "sbs-parallel", "sbs-cross",
+         "mono-left", "mono-right")
+SIDES = ("left", "right")
+
+
+def open_motors(spec: str):
+    """``virtual`` or ``grbl:PORT`` -> a :class:`~softplot.motors.base.Motors`."""
+    from softplot.motors import AxisConfig, VirtualMotors
+
+    if spec == "virtual":
+        fine = AxisConfig(resolution_mm=1e-6, min_mm=-500, max_mm=500, max_speed_mm_s=1e9)
+        return VirtualMotors(fine, fine)
+    if spec.startswith("grbl:") and len(spec) > 5:
+        from softplot.motors.grbl import GrblMotors
+
+        return GrblMotors(spec[5:])
+    raise SoftplotError(f"--motors must be virtual or grbl:PORT, got {spec!r}")
+
+
+def _num(msg: dict, key: str) -> float:
+    v = msg.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise SoftplotError(f"{key} must be a finite number")
+    return float(v)
+
+
+def _text(msg: dict, key: str, default: str | None = None) -> str:
+    v = msg.get(key, default)
+    if not isinstance(v, str) or not v.strip() or len(v) > 64:
+        raise SoftplotError(f"{key} must be a short non-empty text")
+    return v.strip()
+
+
+class Viewer:
+    """A session opened for viewing and plotting (see the module docstring).
+
+    Parameters
+    ----------
+    folder : path
+        The session folder (``softplot plot new`` / ``softplot demo``).
+    motors : str
+        ``virtual`` or ``grbl:PORT``.
+    cache : path, optional
+        Pyramid cache folder (default :func:`softplot.ui.pyramid.default_cache`).
+    """
+
+    def __init__(self, folder, motors: str = "virtual", cache=None, *, tile: int = 256):
+        from softplot.pipeline.session import Session
+        from softplot.ui.pyramid import build_pyramid
+
+        self.folder = Path(folder)
+        probe = Session.resume(self.folder)  # reads and checks the folder, journal replayed
+        probe.close()
+        self.maps = {}
+        paths = {}
+        for side in SIDES:
+            m = probe.photo_map(side)
+            if m is None:
+                raise SoftplotError(f"session {self.folder}: the {side} photo has no scan and "
+                                    "film correction; the viewer shows scans")
+            self.maps[side] = m
+            paths[side] = probe.scan_path(side)  # one line when moved or changed
+        self.pyramids = {
+            side: build_pyramid(paths[side], cache,
+                                sha256=probe.scan_record(side).get("sha256"), tile=tile)
+            for side in SIDES
+        }
+        self.motors = open_motors(motors)
+        self.motors_spec = motors
+        self.session = Session.resume(self.folder, motors=self.motors)
+        self.plotter = self.session.plotter(self.motors)
+        self.left_offset = tuple(self.session.meta.get("left_offset", (0.0, 0.0)))
+        self.lock = threading.Lock()
+        self.client = {"zoom": None, "view": None, "frames": 0}
+        self.journaled_height = self.session.height
+        main = (self.session.motor_state or {}).get("main") or [0.0, 0.0]
+        self.plotter.cycle(float(main[0]), float(main[1]))
+        self.closed = False
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        """The floating mark: carriages, parallax, object point, scan pixels, client view."""
+        c = self.plotter.current
+        DX, DY = self.motors.position()
+        bx, by = self.left_offset
+        lp = self.maps["left"].frame.to_pixel([[c.X + bx + DX, c.Y + by + DY]])[0]
+        rp = self.maps["right"].frame.to_pixel([[c.X, c.Y]])[0]
+        pl = self.plotter
+        return {
+            "mode": pl.mode, "X": c.X, "Y": c.Y, "DX": DX, "DY": DY,
+            "px": DX, "height": pl.height,
+            "object": [float(v) for v in c.XYZ],
+            "left_px": [float(lp[0]), float(lp[1])],
+            "right_px": [float(rp[0]), float(rp[1])],
+            "py": float(c.py), "in_travel": bool(c.in_travel),
+            "zoom": self.client["zoom"], "view": self.client["view"],
+            "frames": self.client["frames"],
+            "open_vertices": 0 if pl._open is None else len(pl._open[2]),
+            "features": len(pl.features), "halted": pl.halted,
+        }
+
+    def info(self) -> dict:
+        """Static facts the page starts from: pyramids, frames, session name, mode."""
+        return {
+            "session": self.folder.name,
+            "motors": self.motors_spec,
+            "scans": {s: {**self.pyramids[s].info(), "pixel_mm": self.maps[s].frame.pixel_mm,
+                          "name": (self.session.scan_record(s) or {}).get("name")}
+                      for s in SIDES},
+            "left_offset": list(self.left_offset),
+            "views": list(VIEWS),
+        }
+
+    def feature_pixels(self) -> list[dict]:
+        """Every recorded feature (and the open line) at its image positions, each scan's
+        pixels: the object vertices projected into each photo and mapped to its scan."""
+        pl = self.plotter
+        items = [(f.code, f.kind, np.asarray(f.vertices, float)) for f in pl.features]
+        if pl._open is not None and pl._open[2]:
+            items.append((pl._open[0], "open", np.asarray(pl._open[2], float)))
+        out = []
+        for code, kind, v in items:
+            v = v.reshape(-1, 3)
+            rec = {"code": code, "kind": kind}
+            for side, photo in (("left", self.plotter.model.left),
+                                ("right", self.plotter.model.right)):
+                px = self.maps[side].photo_to_pixel(photo.project(v))
+                rec[side] = np.round(px, 4).tolist()
+            out.append(rec)
+        return out
+
+    # ------------------------------------------------------------------ input
+    def handle(self, msg: dict) -> dict:
+        """One message of the page; returns the reply (``state``, maybe ``features``).
+
+        Ops: ``cycle`` (X, Y[, px]), ``free`` (X, Y, DX, DY), ``mode`` (mode[, height]),
+        ``height`` (contour height, not journalled until something is recorded), ``drive``
+        (X, Y, Z object), ``record`` (code), ``begin`` (code[, kind]), ``vertex``, ``end``
+        ([close]), ``undo`` (last vertex), ``client`` (zoom, view, frames: for
+        ``/api/state``), ``state``. Bad values give ``{"type": "error", "message": ...}``.
+        """
+        if not isinstance(msg, dict):
+            raise SoftplotError("a message is a JSON object")
+        op = msg.get("op")
+        pl = self.plotter
+        feats = False
+        with self.lock:
+            if op == "cycle":
+                px = _num(msg, "px") if msg.get("px") is not None and pl.mode == "single" \
+                    else None
+                pl.cycle(_num(msg, "X"), _num(msg, "Y"), px)
+            elif op == "free":
+                if pl.mode != "free":
+                    raise SoftplotError("DX, DY are the operator's in free mode only")
+                self.motors.move_to(_num(msg, "DX"), _num(msg, "DY"), wait=False)
+                pl.cycle(_num(msg, "X"), _num(msg, "Y"))
+            elif op == "mode":
+                mode = _text(msg, "mode")
+                h = msg.get("height")
+                h = _num(msg, "height") if h is not None else pl.height
+                pl.set_mode(mode, h)
+                self.session.set_mode(mode, pl.height)
+                self.journaled_height = pl.height
+                c = pl.current
+                pl.cycle(c.X, c.Y)
+            elif op == "height":
+                if pl.mode != "contour":
+                    raise SoftplotError("the contour height is set in contour mode")
+                pl.set_mode("contour", _num(msg, "height"))
+                c = pl.current
+                pl.cycle(c.X, c.Y)
+            elif op == "drive":
+                pl.drive_to(_num(msg, "X"), _num(msg, "Y"), _num(msg, "Z"))
+            elif op in ("record", "begin", "vertex", "end", "undo"):
+                feats = True
+                if pl.height != self.journaled_height:
+                    self.session.set_mode(pl.mode, pl.height)
+                    self.journaled_height = pl.height
+                if op == "record":
+                    pl.record_point(_text(msg, "code"))
+                elif op == "begin":
+                    kind = msg.get("kind")
+                    pl.begin(_text(msg, "code"), None if kind is None else _text(msg, "kind"))
+                elif op == "vertex":
+                    pl.vertex()
+                elif op == "end":
+                    pl.end(close=bool(msg.get("close", False)))
+                elif pl._open is not None and pl._open[2]:  # undo the last vertex
+                    pl._open[2].pop()
+                    pl._open[3].pop()
+            elif op == "client":
+                z = msg.get("zoom")
+                self.client = {"zoom": float(z) if isinstance(z, (int, float)) else None,
+                               "view": msg.get("view") if msg.get("view") in VIEWS else None,
+                               "frames": int(msg.get("frames") or 0)}
+                return {"type": "ok", "seq": msg.get("seq")}
+            elif op == "state":
+                pass
+            elif op == "features":
+                feats = True
+            else:
+                raise SoftplotError(f"unknown op {op!r}")
+            out = {"type": "state", "seq": msg.get("seq"), "state": self.state()}
+            if feats:
+                out["features"] = self.feature_pixels()
+            return out
+
+    def close(self) -> None:
+        """Save the motor state in the journal and close it (and the motors)."""
+        if self.closed:
+            return
+        self.closed = True
+        with self.lock:
+            try:
+                self.session.save_motors(self.motors)
+            finally:
+                self.session.close()
+                try:
+                    self.motors.close()
+                except Exception:  # noqa: BLE001 - closing must not hide the journal's state
+                    pass
