@@ -7,6 +7,9 @@ Run:  .venv/bin/python tools/bench_bundle.py [--repeat 3] [--json out.json] [--q
 2. Synthetic 100-model aerial block (5 strips x 21 photos, 60 % / 30 % overlap) with
    self-calibration (c, x0, y0, k1 free): seconds of the adjustment incl. covariance blocks.
 3. Growth of the time with the block size: 10, 100 and 400 photos (same generator).
+4. Blocks of thousands (``--large``): 500, 1000 and 2000 photos (20 strips x 100) with
+   self-calibration, default covariance (``auto``: the interior orientation only above 8000
+   camera-side unknowns), time of ``bundle_adjust`` and peak memory (tracemalloc).
 
 Medians over ``--repeat`` runs. The machine is shared: say so when quoting the figures.
 """
@@ -61,15 +64,25 @@ def _block(strips, photos, seed=0):
     return net, d
 
 
-def bench_block(strips, photos, repeat: int) -> dict:
-    net, d = _block(strips, photos)
+def bench_block(strips, photos, repeat: int, memory: bool = False) -> dict:
+    import copy
+    import tracemalloc
+
+    net, d0 = _block(strips, photos)
     times, lm, cpu = [], [], []
     res = None
+    peak = None
     for _ in range(repeat):
+        d = copy.deepcopy(d0)
+        if memory:
+            tracemalloc.start()
         t0, c0 = time.perf_counter(), time.process_time()
         res = bundle_adjust(d)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
+        if memory:
+            peak = tracemalloc.get_traced_memory()[1] / 2**20
+            tracemalloc.stop()
         lm.append(res.seconds)
     return {
         "median_cpu_seconds": statistics.median(cpu),
@@ -82,6 +95,8 @@ def bench_block(strips, photos, repeat: int) -> dict:
         "iterations": res.iterations,
         "sigma0": res.sigma0,
         "check_rms_m": res.check_rms(),
+        "peak_traced_mib": peak,
+        "intrinsics_std": res.intrinsics_std[0, :4].tolist(),
     }
 
 
@@ -90,11 +105,28 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", default=None)
     ap.add_argument("--quick", action="store_true", help="skip the 400-photo block")
+    ap.add_argument("--large", action="store_true", help="only the 500-2000 photo blocks")
     a = ap.parse_args(argv)
     out = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
         "load_average_at_start": os.getloadavg(),
     }
+    if a.large:
+        large = []
+        for strips, photos in [(10, 50), (10, 100), (20, 100)]:
+            g = bench_block(strips, photos, a.repeat, memory=True)
+            large.append(g)
+            print(
+                f"  {g['photos']:4d} photos {g['observations']:6d} obs: "
+                f"{g['median_seconds']:.2f} s (CPU {g['median_cpu_seconds']:.2f} s, LM "
+                f"{g['median_lm_seconds']:.2f} s, {g['iterations']} it, peak "
+                f"{g['peak_traced_mib']:.0f} MiB traced)"
+            )
+        out["large"] = large
+        out["load_average_at_end"] = os.getloadavg()
+        if a.json:
+            Path(a.json).write_text(json.dumps(out, indent=1, default=float) + "\n")
+        return out
     if LADYBUG.is_file():
         out["bal_ladybug"] = bench_bal(a.repeat)
         b = out["bal_ladybug"]

@@ -172,6 +172,87 @@ class SchurStructure:
         self.dense = self.n_cam <= dense_limit and not (
             self.n_cam > sparse_above and self.block_density < sparse_density
         )
+        self.band = None if self.dense else self._band_plan()
+
+    def _band_plan(self, max_border: int = 1500, max_band: int = 3000):
+        """Ordering of the camera side for the bordered band solver, or None.
+
+        Unknowns shared by several groups (a physical camera's interior orientation) form
+        the *border*, ordered last; the others follow the reverse Cuthill-McKee order of the
+        groups' co-visibility graph (a fill-reducing, bandwidth-reducing ordering), so the
+        reduced system is a band matrix bordered by a few dense rows.
+        """
+        import scipy.sparse.csgraph
+
+        n, G = self.n_cam, self.G
+        gp = self.group_params
+        cnt = np.bincount(gp[gp < n].ravel(), minlength=n)
+        border = np.flatnonzero(cnt > 1)
+        if border.size > max_border:
+            return None
+        adj = scipy.sparse.coo_matrix(
+            (np.ones(self.pair_g1.size), (self.pair_g1, self.pair_g2)), shape=(G, G)
+        ).tocsr()
+        adj = (adj + adj.T).tocsr()
+        order = scipy.sparse.csgraph.reverse_cuthill_mckee(adj, symmetric_mode=True)
+        pos = np.empty(G, np.int64)
+        pos[order] = np.arange(G)
+        # every non-border unknown takes the position of (the first) group holding it
+        first = np.full(n, np.iinfo(np.int64).max)
+        rows = np.repeat(pos, gp.shape[1])
+        cols = gp.ravel()
+        ok = cols < n
+        np.minimum.at(first, cols[ok], rows[ok])
+        is_b = np.zeros(n, bool)
+        is_b[border] = True
+        inner = np.flatnonzero(~is_b)
+        inner = inner[np.lexsort((inner, first[inner]))]
+        perm = np.concatenate([inner, border])
+        inv = np.empty(n, np.int64)
+        inv[perm] = np.arange(n)
+        # bandwidth of the inner part from the group pairs
+        gi = inv[np.where(gp < n, gp, 0)]
+        gi = np.where(gp < n, gi, -1)
+        inner_pos = np.where((gi >= 0) & (gi < inner.size), gi, -1)
+        lo = np.where(inner_pos >= 0, inner_pos, np.iinfo(np.int64).max).min(axis=1)
+        hi = inner_pos.max(axis=1)
+        a, b = self.pair_g1, self.pair_g2
+        valid = (hi[a] >= 0) & (hi[b] >= 0)
+        u = 0
+        if valid.any():
+            u = int(max(np.max(hi[a][valid] - lo[b][valid]), np.max(hi[b][valid] - lo[a][valid])))
+        u = max(u, int(np.max(np.where(hi >= 0, hi - lo, 0))) if G else 0)
+        if u > max_band:
+            return None
+        # scatter plan of the reduced system's entries (U blocks, pair blocks, transposes)
+        # into the band / border storage, upper triangle in the new order
+        N1 = n + 1
+        flat = np.concatenate([self.u_flat, self.s_flat, self.s_flat_t[self.offdiag]])
+        rr, cc = np.divmod(flat, N1)
+        ok = (rr < n) & (cc < n)
+        inv_e = np.append(inv, -1)
+        r, c = inv_e[rr], inv_e[cc]
+        sel = np.flatnonzero(ok & (r <= c))
+        r, c = r[sel], c[sel]
+        na, nb = int(inner.size), int(border.size)
+        ia = c < na
+        ib = (r < na) & (c >= na)
+        icc = r >= na
+        return {
+            "perm": perm,
+            "n_inner": na,
+            "u": u,
+            "sel": sel,
+            "r": r,
+            "c": c,
+            "dest_a": (u + r[ia] - c[ia]) * na + c[ia],
+            "ia": np.flatnonzero(ia),
+            "dest_b": r[ib] * nb + (c[ib] - na),
+            "ib": np.flatnonzero(ib),
+            "dest_c": (r[icc] - na) * nb + (c[icc] - na),
+            "ic": np.flatnonzero(icc),
+            "idiag": np.flatnonzero(r == c),
+        }
 
     # -- observations by group (for U)
     def _build_groups(self) -> None:
@@ -446,6 +527,10 @@ class Linearization:
             S -= np.bincount(st.s_flat_t[st.offdiag], weights=bl[st.offdiag], minlength=N1 * N1)
             S = S.reshape(N1, N1)[: st.n_cam, : st.n_cam]
             S[np.diag_indices(st.n_cam)] += lc + self.Udiag_extra[: st.n_cam]
+        elif st.band is not None:
+            bl = blocks.ravel()
+            vals = np.concatenate([self.Ug.ravel(), -bl, -bl[st.offdiag]])[st.band["sel"]]
+            S = BandSystem(st.band, vals, lc + self.Udiag_extra[: st.n_cam])
         else:
             bl = blocks.ravel()
             flat = np.concatenate([st.u_flat, st.s_flat, st.s_flat_t[st.offdiag]])
@@ -512,17 +597,126 @@ class Linearization:
     def solve(self, lam_c, lam_p):
         """Damped Gauss-Newton step ``(dc, dp)`` or ``None`` when the system is not definite."""
         S, b, Vinv, _ = self.reduced(lam_c, lam_p)
-        dc = _solve_reduced(S, b, self.st.dense)
+        dc = _solve_reduced(S, b, self.st.dense, self.st.band)
         if dc is None:
             return None
         dp = self.back_substitute(dc, Vinv, -self.gp)
         return dc, dp
 
 
-def _solve_reduced(S, b, dense: bool):
-    """Solve ``S x = b`` (Jacobi-scaled Cholesky, or sparse LU); ``None`` if it fails."""
+class BandSystem:
+    """The reduced camera system in the bordered band plan of a :class:`SchurStructure`:
+    upper-triangle entries (new order) and the diagonal additions (camera order)."""
+
+    def __init__(self, plan: dict, vals: np.ndarray, diag_add: np.ndarray) -> None:
+        self.plan, self.vals = plan, vals
+        n = plan["perm"].size
+        self.shape = (n, n)
+        d = np.bincount(plan["r"][plan["idiag"]], vals[plan["idiag"]], minlength=n)
+        self.diag_perm = d + diag_add[plan["perm"]]
+
+    def diagonal(self) -> np.ndarray:
+        out = np.empty_like(self.diag_perm)
+        out[self.plan["perm"]] = self.diag_perm
+        return out
+
+    def toarray(self) -> np.ndarray:
+        """Dense matrix (camera order; tests and small problems only)."""
+        n = self.shape[0]
+        p = self.plan
+        M = np.zeros((n, n))
+        off = p["r"] != p["c"]
+        np.add.at(M, (p["r"][off], p["c"][off]), self.vals[off])
+        M = M + M.T
+        M[np.diag_indices(n)] = self.diag_perm
+        out = np.empty_like(M)
+        out[np.ix_(p["perm"], p["perm"])] = M
+        return out
+
+
+class BorderedBand:
+    """Cholesky factor of the reduced system ``S`` (a :class:`BandSystem`, Jacobi-scaled)
+    in the ordering of :meth:`SchurStructure._band_plan`: ``[[A, B], [B', C]]`` with ``A``
+    banded (LAPACK ``pbtrf``), the border by its Schur complement ``C - B' A^-1 B`` (dense
+    Cholesky).
+
+    Work ``O(n u^2 + n u k + n k^2)`` for ``n`` unknowns, half-bandwidth ``u`` and ``k``
+    border unknowns; memory ``O(n (u + k))``.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        When ``S`` is not positive definite.
+    """
+
+    def __init__(self, S: BandSystem) -> None:
+        p = S.plan
+        perm, na, u = p["perm"], p["n_inner"], p["u"]
+        n = perm.size
+        dg = S.diag_perm
+        if np.any(~(dg > 0)) or not np.all(np.isfinite(dg)):
+            raise np.linalg.LinAlgError("non-positive diagonal")
+        sp = 1.0 / np.sqrt(dg)  # new order
+        self.s = np.empty(n)
+        self.s[perm] = sp
+        r, c = p["r"], p["c"]
+        v = S.vals * sp[r] * sp[c]
+        v[p["idiag"]] = 0.0
+        self.perm, self.na, self.n = perm, na, n
+        nb = n - na
+        ab = np.bincount(p["dest_a"], v[p["ia"]], minlength=(u + 1) * na).reshape(u + 1, na)
+        ab[u, :] = 1.0  # the scaled diagonal
+        self.cf = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
+        B = np.bincount(p["dest_b"], v[p["ib"]], minlength=na * nb).reshape(na, nb)
+        Cb = np.bincount(p["dest_c"], v[p["ic"]], minlength=nb * nb).reshape(nb, nb)
+        Cb = Cb + Cb.T
+        Cb[np.diag_indices(nb)] = 1.0
+        self.B = B
+        self.X = scipy.linalg.cho_solve_banded((self.cf, False), B, check_finite=False)
+        Sc = Cb - B.T @ self.X
+        self.Sc_cf = scipy.linalg.cho_factor(Sc, lower=False, check_finite=False) if nb else None
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``S^-1 b`` for ``b`` of shape (n,) or (n, q)."""
+        sc = self.s if b.ndim == 1 else self.s[:, None]
+        bp = (b * sc)[self.perm]
+        na = self.na
+        ya = scipy.linalg.cho_solve_banded((self.cf, False), bp[:na], check_finite=False)
+        if self.n > na:
+            xb = scipy.linalg.cho_solve(self.Sc_cf, bp[na:] - self.B.T @ ya, check_finite=False)
+            xa = ya - self.X @ xb
+            xp = np.concatenate([xa, xb])
+        else:
+            xp = ya
+        out = np.empty_like(xp)
+        out[self.perm] = xp
+        return out * sc
+
+    def border_index(self) -> np.ndarray:
+        """Camera-side indices of the border unknowns (order of :meth:`border_inverse`)."""
+        return self.perm[self.na :]
+
+    def border_inverse(self) -> np.ndarray:
+        """The border block of ``S^-1`` (the inverse of the Schur complement, unscaled)."""
+        nb = self.n - self.na
+        if nb == 0:
+            return np.zeros((0, 0))
+        Q = scipy.linalg.cho_solve(self.Sc_cf, np.eye(nb), check_finite=False)
+        sb = self.s[self.perm[self.na :]]
+        return Q * sb[:, None] * sb[None, :]
+
+
+def _solve_reduced(S, b, dense: bool, band: dict | None = None):
+    """Solve ``S x = b`` (Jacobi-scaled Cholesky: dense, bordered band, or sparse LU);
+    ``None`` if it fails."""
     if b.size == 0:
         return np.zeros(0)
+    if not dense and band is not None:
+        try:
+            x = BorderedBand(S).solve(b)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+        return x if np.all(np.isfinite(x)) else None
     if dense:
         dg = np.diag(S).copy()
         if not np.all(np.isfinite(dg)) or np.any(dg <= 0):
@@ -728,6 +922,8 @@ class NormalInverse:
         self.chunk = chunk
         S, _, self.Vinv, self.Y = lin.reduced(0.0, 0.0)
         n = st.n_cam
+        self._Qcc = None
+        self.band = None
         if n:
             if not st.dense and n <= dense_inverse_limit:
                 S = S.toarray()  # all of Qcc is wanted: a dense factor is faster than n solves
@@ -749,22 +945,72 @@ class NormalInverse:
                     raise SoftplotError("normal matrix singular: datum or parameter undetermined")
                 inv = np.triu(inv) if not cf[1] else np.tril(inv)
                 inv = inv + inv.T - np.diag(np.diag(inv))
-                self._Qcc_direct = inv * s[:, None] * s[None, :]
+                self._set_qcc(inv * s[:, None] * s[None, :])
+            elif isinstance(S, BandSystem):
+                try:
+                    self.band = BorderedBand(S)
+                except (np.linalg.LinAlgError, ValueError) as exc:
+                    raise SoftplotError(
+                        "normal matrix singular: datum or a parameter undetermined"
+                    ) from exc
+                self._solve_c = lambda b: self.band.solve(b)
             else:
                 s = 1.0 / np.sqrt(S.diagonal())
                 D = scipy.sparse.diags(s)
                 lu = scipy.sparse.linalg.splu((D @ S @ D).tocsc(), permc_spec="MMD_AT_PLUS_A")
                 self._solve_c = lambda b: lu.solve(b * s[:, None]) * s[:, None]
-            Q = getattr(self, "_Qcc_direct", None)
-            self.Qcc = self._solve_c(np.eye(n)) if Q is None else Q
-            self.Qcc = 0.5 * (self.Qcc + self.Qcc.T)
-            if not np.all(np.isfinite(self.Qcc)):
-                raise SoftplotError("normal matrix singular: datum or a parameter undetermined")
         else:
-            self.Qcc = np.zeros((0, 0))
+            self._Qcc = np.zeros((0, 0))
             self._solve_c = lambda b: np.zeros((0, b.shape[1]))
         self._cross = None
         self._Qpp = None
+
+    def _set_qcc(self, Q: np.ndarray) -> None:
+        Q = 0.5 * (Q + Q.T)
+        if not np.all(np.isfinite(Q)):
+            raise SoftplotError("normal matrix singular: datum or a parameter undetermined")
+        self._Qcc = Q
+
+    @property
+    def Qcc(self) -> np.ndarray:
+        """The whole camera-side block ``S^-1`` (formed on first use for large systems:
+        ``n_cam`` solves - prefer :meth:`columns`)."""
+        if self._Qcc is None:
+            self._set_qcc(self._solve_c(np.eye(self.st.n_cam)))
+        return self._Qcc
+
+    @property
+    def has_full_qcc(self) -> bool:
+        return self._Qcc is not None
+
+    def columns(self, idx) -> np.ndarray:
+        """``Qcc[:, idx]`` (n_cam, len(idx)) by solves (or from the formed ``Qcc``)."""
+        idx = np.asarray(idx, np.int64)
+        if self._Qcc is not None:
+            return self._Qcc[:, idx]
+        E = np.zeros((self.st.n_cam, idx.size))
+        E[idx, np.arange(idx.size)] = 1.0
+        return self._solve_c(E)
+
+    def point_blocks_of(self, points) -> np.ndarray:
+        """``Q_pp`` (len, 3, 3) of selected points without forming ``Qcc``:
+        ``V_j^-1 + sum_{o, o'} Y_o' Qcc[cols_o, cols_o'] Y_o'`` over the point's observations."""
+        st = self.st
+        out = np.zeros((len(points), 3, 3))
+        for i, j in enumerate(points):
+            obs = np.flatnonzero(st.obs_point == j)
+            cols = st.obs_cols[obs]  # (n, k) with dummy n_cam
+            uc = np.unique(cols[cols < st.n_cam])
+            Qc = self.columns(uc)[uc]  # (u, u)
+            pos = np.searchsorted(uc, np.minimum(cols, st.n_cam - 1))
+            valid = cols < st.n_cam
+            Yj = self.Y[:, obs, :].transpose(1, 0, 2) * valid[:, :, None]  # (n, k, 3)
+            Z = np.zeros((uc.size, 3))
+            np.add.at(Z, pos.ravel(), Yj.reshape(-1, 3))
+            Q = self.Vinv[j] + Z.T @ Qc @ Z
+            Q = 0.5 * (Q + Q.T)
+            out[i] = Q * (st.point_free[j][:, None] & st.point_free[j][None, :])
+        return out
 
     def solve(self, rhs_c: np.ndarray, rhs_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``Q @ [rhs_c; rhs_p]`` for several right-hand sides.

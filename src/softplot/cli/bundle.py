@@ -65,6 +65,15 @@ from softplot.errors import SoftplotError
     type=click.Path(dir_okay=False),
     help="Write every image residual (um, px, redundancy numbers, w) to a CSV file.",
 )
+@click.option(
+    "--covariance",
+    type=click.Choice(["auto", "full", "interior"]),
+    default="auto",
+    show_default=True,
+    help="Posterior covariance: full (every block, redundancy numbers, data snooping), "
+    "interior (the interior orientation only: large blocks), auto (full up to 8000 "
+    "camera-side unknowns).",
+)
 def command(
     project,
     bal,
@@ -78,6 +87,7 @@ def command(
     alpha,
     max_iterations,
     residuals_out,
+    covariance,
 ):
     """Bundle adjustment of PROJECT (folder, see docs/bundle.md) or of a BAL file (--bal)."""
     if (project is None) == (bal is None):
@@ -124,6 +134,7 @@ def command(
         datum="free" if free_network else "auto",
         scale_distance=scale,
         alpha0=alpha,
+        covariance=covariance,
         lm=LMOptions(function_tolerance=1e-10, max_iterations=max_iterations, progress=cb),
     )
     try:

@@ -281,6 +281,12 @@ class BundleOptions:
     ``scale_distance``: ``(point_a, point_b, distance)`` fixing the scale of a free network.
     ``alpha0``: data-snooping significance level (3.29 for 0.001).
     ``corr_warn``: correlation magnitude that raises a warning.
+    ``covariance``: ``True`` / ``"auto"`` (every block while the camera side has at most
+    ``full_covariance_limit`` unknowns, else as ``"interior"``), ``"full"`` (every block:
+    exterior orientations, points, redundancy numbers and data snooping), ``"interior"``
+    (the interior orientation only, plus the photos and points named in
+    ``covariance_photos`` / ``covariance_points``: no redundancy numbers, no snooping) or
+    ``False``.
     """
 
     datum: str = "auto"
@@ -288,7 +294,10 @@ class BundleOptions:
     alpha0: float = 0.001
     corr_warn: float = 0.9
     lm: LMOptions = field(default_factory=lambda: LMOptions(function_tolerance=1e-10))
-    covariance: bool = True
+    covariance: bool | str = True
+    covariance_photos: tuple = ()
+    covariance_points: tuple = ()
+    full_covariance_limit: int = 8000
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1024,7 +1033,28 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
     rnum = np.full((m, 2), np.nan)
     angles = np.column_stack(angles_from_matrix(M))
     internals = None
-    if opt.covariance:
+    mode = opt.covariance
+    if mode is True or mode == "auto":
+        mode = "full" if model.n_cam <= opt.full_covariance_limit else "interior"
+    if mode not in (False, None, "full", "interior"):
+        raise SoftplotError(f"unknown covariance mode {opt.covariance!r}; use auto, full, interior")
+    if mode == "interior" and datum == "free":
+        warnings.append("free network: covariance needs the full camera-side inverse; skipped")
+        mode = False
+    if mode == "interior":
+        lin = model_linearize(model, st)
+        inv = NormalInverse(lin, dense_inverse_limit=0)
+        internals = {"inv": inv, "model": model, "state": st, "ok": rays >= 2, "opt": opt}
+        eo_std[:] = np.nan
+        XYZ_cov[:] = np.nan
+        _selected_covariance(
+            inv, model, d, opt, var, M, in_std, eo_std, XYZ_cov, corr_list, warnings
+        )
+        warnings.append(
+            "covariance limited to the interior orientation (and the photos/points asked "
+            "for): no redundancy numbers or data snooping (use covariance 'full')"
+        )
+    elif mode == "full":
         lin = model_linearize(model, st)
         inv = NormalInverse(lin)
         internals = {"inv": inv, "model": model, "state": st, "ok": rays >= 2, "opt": opt}
@@ -1126,6 +1156,47 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
         history=res.history,
         _internals=internals,
     )
+
+
+def _selected_covariance(inv, model, d, opt, var, M, in_std, eo_std, XYZ_cov, corr, warnings):
+    """Interior orientation (and selected photos / points) covariance by solves only."""
+    for c in range(len(d.cameras)):
+        act = model.in_idx[c] >= 0
+        idx = model.in_idx[c, act]
+        if not idx.size:
+            continue
+        Q = var * inv.columns(idx)[idx]
+        sd = np.sqrt(np.clip(np.diag(Q), 0, None))
+        in_std[c, act] = sd
+        names = [n for n, a in zip(INTRINSICS, act, strict=True) if a]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            R_ = Q / np.outer(sd, sd)
+        corr[c] = {"names": names, "matrix": np.round(R_, 4).tolist()}
+        for i, j in zip(*np.triu_indices(len(idx), 1), strict=True):
+            if abs(R_[i, j]) > opt.corr_warn:
+                warnings.append(
+                    f"camera {d.cameras[c].name}: correlation {names[i]}-{names[j]} = "
+                    f"{R_[i, j]:+.3f}"
+                )
+    for name in opt.covariance_photos:
+        if name not in d.photo_names:
+            raise SoftplotError(f"covariance_photos: unknown photo {name!r}")
+        f = d.photo_names.index(name)
+        ei = model.eo_idx[f]
+        if ei[0] < 0:
+            eo_std[f] = 0.0
+            continue
+        Cr = var * inv.columns(ei)[ei]
+        eo_std[f, :3] = np.sqrt(np.clip(np.diag(Cr)[:3], 0, None))
+        J = _angle_jacobian(M[f][None])[0]
+        eo_std[f, 3:] = np.sqrt(np.clip(np.diag(J @ Cr[3:, 3:] @ J.T), 0, None))
+    pts = []
+    for name in opt.covariance_points:
+        if name not in d.point_names:
+            raise SoftplotError(f"covariance_points: unknown point {name!r}")
+        pts.append(d.point_names.index(name))
+    if pts:
+        XYZ_cov[pts] = var * inv.point_blocks_of(pts)
 
 
 def model_linearize(model, state):
