@@ -71,7 +71,7 @@ from softplot.errors import SoftplotError
     default="auto",
     show_default=True,
     help="Posterior covariance: full (every block, redundancy numbers, data snooping), "
-    "interior (the interior orientation only: large blocks), auto (full up to 8000 "
+    "interior (the interior orientation only: large blocks), auto (full up to 3000 "
     "camera-side unknowns).",
 )
 def command(

@@ -64,3 +64,26 @@ def bal(file, out, pixel_size_um, sigma_px) -> None:
     from softplot.orientation.interchange.bal import read_bal_project
 
     _write(read_bal_project(file, pixel_size_um, sigma_px), out)
+
+
+@command.command("photomodeler")
+@click.argument("export_file", type=click.Path(dir_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(), help="Project folder to write.")
+@click.option(
+    "--control",
+    "control",
+    type=click.Path(dir_okay=False),
+    help="Control points ID X Y Z [SX SY SZ] replacing the export's (std 0: fixed).",
+)
+@click.option(
+    "--image-size",
+    nargs=2,
+    type=int,
+    default=None,
+    help="Image WIDTH HEIGHT in pixels (when line 2 of the export has none).",
+)
+def photomodeler(export_file, out, control, image_size) -> None:
+    """PhotoModeler text export EXPORT_FILE (the format DBAT reads)."""
+    from softplot.orientation.interchange.photomodeler import read_photomodeler
+
+    _write(read_photomodeler(export_file, image_size, control), out)

@@ -297,7 +297,7 @@ class BundleOptions:
     covariance: bool | str = True
     covariance_photos: tuple = ()
     covariance_points: tuple = ()
-    full_covariance_limit: int = 8000
+    full_covariance_limit: int = 3000
 
 
 # ---------------------------------------------------------------------------------------------
