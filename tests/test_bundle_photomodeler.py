@@ -43,7 +43,7 @@ def make_export(path, net, aspect=0.0, control=True):
         o, p_, k = ang[f]
         lines += [
             f"{f} {name}.jpg",
-            f"{f} {float(X0[f, 0])!r} {float(X0[f, 1])!r} {float(X0[f, 2])!r} {float(k)!r} {float(p_)!r} {float(o)!r}",
+            f"{f} " + " ".join(repr(float(v)) for v in [*X0[f], k, p_, o]),
             f"{f} 0 0 0 0 0 0",
             f"{f}",
             f"{f} {cam}",
