@@ -7,7 +7,8 @@ Run:  .venv/bin/python tools/bench_bundle.py [--repeat 3] [--json out.json] [--q
 2. Synthetic 100-model aerial block (5 strips x 21 photos, 60 % / 30 % overlap) with
    self-calibration (c, x0, y0, k1 free): seconds of the adjustment incl. covariance blocks.
 3. Growth of the time with the block size: 10, 100 and 400 photos (same generator).
-4. Blocks of thousands (``--large``): 500, 1000 and 2000 photos (20 strips x 100) with
+4. Blocks of thousands (``--large``): 500, 1000 and 2000 photos (10 strips x 50, 100, 200;
+   and 20 strips x 100) with
    self-calibration, default covariance (``auto``: the interior orientation only above 8000
    camera-side unknowns), time of ``bundle_adjust`` and peak memory (tracemalloc).
 
@@ -113,7 +114,7 @@ def main(argv=None) -> dict:
     }
     if a.large:
         large = []
-        for strips, photos in [(10, 50), (10, 100), (20, 100)]:
+        for strips, photos in [(10, 50), (10, 100), (10, 200), (20, 100)]:
             g = bench_block(strips, photos, a.repeat, memory=True)
             large.append(g)
             print(
