@@ -381,6 +381,18 @@ class _Model:
             n += int(act.sum())
         self.eo_idx, self.in_idx, self.n_cam = eo_idx, in_idx, n
         gp = np.hstack([eo_idx, in_idx[data.photo_camera]])
+        #: Jacobian slots (EO, then interior parameters) that are unknown in some photo: the
+        #: others (fixed everywhere) are dropped from the engine's blocks
+        self.slots = np.flatnonzero((gp >= 0).any(axis=0)) if gp.size else np.zeros(0, int)
+        if self.slots.size == 0:
+            self.slots = np.arange(min(gp.shape[1], 1))
+        gp = gp[:, self.slots]
+        # photos along the block's long axis (a narrow band for strips of aerial photos)
+        hint = None
+        X0 = data.X0
+        if F > 2 and np.all(np.isfinite(X0)):
+            c = X0 - X0.mean(axis=0)
+            hint = c @ np.linalg.svd(c, full_matrices=False)[2][0]
         self.structure = SchurStructure(
             n,
             len(data.point_names),
@@ -390,6 +402,7 @@ class _Model:
             2,
             point_free,
             dense_limit=dense_limit,
+            order_hint=hint,
         )
         # priors on intrinsics
         pri_i, pri_s, pri_v = [], [], []
@@ -531,6 +544,8 @@ class _Model:
         Jc[:, :, 4] = A[:, :, 0] * u[:, 2, None] - A[:, :, 2] * u[:, 0, None]
         Jc[:, :, 5] = A[:, :, 1] * u[:, 0, None] - A[:, :, 0] * u[:, 1, None]
         Jc[:, :, 6] = -np.einsum("mij,mj->mi", C2, np.column_stack([qx, qy]))
+        if self.slots.size != Jc.shape[2]:
+            Jc = Jc[:, :, self.slots]
         return Evaluation(r, self.whiten(Jc), self.whiten(Jp), cam_prior, pt_prior)
 
     def retract(self, state: _State, d_cam, d_pts) -> _State:
