@@ -102,9 +102,29 @@ class Viewer:
         self.lock = threading.Lock()
         self.client = {"zoom": None, "view": None, "frames": 0}
         self.journaled_height = self.session.height
-        main = (self.session.motor_state or {}).get("main") or [0.0, 0.0]
-        self.plotter.cycle(float(main[0]), float(main[1]))
+        self._start()
         self.closed = False
+
+    def _start(self) -> None:
+        """Put the mark where the session left it (its saved main carriage), else on the
+        last recorded vertex, else below the middle of the base at the contour height (or
+        Z = 0)."""
+        pl, st = self.plotter, self.session.motor_state
+        if st and st.get("main"):
+            pl.cycle(float(st["main"][0]), float(st["main"][1]))
+            return
+        m = pl.model
+        if pl.features:
+            P = np.asarray(pl.features[-1].vertices, float).reshape(-1, 3)[-1]
+        else:
+            mid = (np.asarray(m.left.X0, float) + np.asarray(m.right.X0, float)) / 2
+            P = np.array([mid[0], mid[1], pl.height if pl.height is not None else 0.0])
+        try:
+            pl.drive_to(*map(float, P))
+            if pl.mode != "free":
+                pl.cycle(pl.current.X, pl.current.Y)
+        except Exception:  # noqa: BLE001 - a start position only: the scan centre will do
+            pl.cycle(0.0, 0.0)
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:

@@ -294,21 +294,45 @@ export class Renderer {
         this.lines(gl.LINES, [x - a, y - a, x + a + 1, y + a + 1, x - a, y + a, x + a + 1, y - a - 1], col, hw, hh);
       } else this.lines(gl.LINE_STRIP, pts, col, hw, hh);
     }
-    // the floating mark, fixed at the eye centre
-    const m = ov.mark, c = m.colour;
-    const h = 0.5;  // pixel centres: the mark's pixel is the one around (0, 0)
+    // the floating mark, fixed at the eye centre (open in the middle, except 'dot' and
+    // 'cross-dot', so the pixel under it stays visible)
+    const m = ov.mark, c = m.colour, h = 0.5;
+    if (m.shape === 'none') return;
     if (m.shape === 'dot') {
       this.lines(gl.TRIANGLE_STRIP, [-1.5, -1.5, 1.5, -1.5, -1.5, 1.5, 1.5, 1.5], c, hw, hh);
     } else if (m.shape === 'circle') {
       const ring = [];
       for (let i = 0; i <= 32; i++) { const a = i * Math.PI / 16; ring.push(6 * Math.cos(a), 6 * Math.sin(a)); }
       this.lines(gl.LINE_STRIP, ring, c, hw, hh);
-      this.lines(gl.POINTS, [0, 0], c, hw, hh);
     } else {
       const g = 3, a = 12;
       this.lines(gl.LINES, [-a - h, 0, -g + h, 0, g - h, 0, a + h, 0, 0, -a - h, 0, -g + h, 0, g - h, 0, a + h], c, hw, hh);
-      this.lines(gl.POINTS, [0, 0], c, hw, hh);
+      if (m.shape === 'cross-dot') this.lines(gl.POINTS, [0, 0], c, hw, hh);
     }
+  }
+
+  // The composite pass alone over two constant eyes (rgb 0..1): the canvas centre pixel.
+  compositeTest(view, left, right) {
+    const gl = this.gl, [W, H] = this.resize();
+    for (const [k, col] of [[0, left], [1, right]]) {
+      const t = this.eyeTarget(k, W, H);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, t.fb);
+      gl.viewport(0, 0, W, H);
+      gl.clearColor(col[0], col[1], col[2], 1);
+      gl.clear(gl.COLOR_BUFFER_BIT);
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.viewport(0, 0, W, H);
+    const P = this.compProg;
+    gl.useProgram(P.prog);
+    gl.bindVertexArray(this.emptyVao);
+    gl.uniform1i(P.u.u_left, 0); gl.uniform1i(P.u.u_right, 1);
+    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D, this.eyes[0].tex);
+    gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D, this.eyes[1].tex);
+    gl.uniform1i(P.u.u_mode, { 'anaglyph-dubois': 0, 'anaglyph-pure': 1, 'anaglyph-grey': 2 }[view]);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    gl.activeTexture(gl.TEXTURE0);
+    return Array.from(this.pixels((W - 1) / 2, (H - 1) / 2, 1, 1)).slice(0, 3);
   }
 
   // The whole view. st: {left_px, right_px}, view: VIEW_MODES item, swap: bool.

@@ -14,7 +14,7 @@ ready.catch(() => {});
 
 const app = {
   info: null, st: null, zoom: 1, view: 'anaglyph-dubois', swap: false, frames: 0,
-  mark: { shape: 'cross', colour: [1.0, 0.19, 0.13] },
+  mark: { shape: 'cross', colour: [1.0, 0.19, 0.13] },  // shapes: cross, cross-dot, dot, circle, none
   features: [[], []], featureList: [], dirty: true, seq: 0, pending: new Map(),
   afterFrame: [], sentAt: new Map(), latencies: [], lastDrawnSeq: 0, stSeq: 0,
   ws: null, renderer: null, readyDone: false, measure: { left: [], right: [] },
@@ -25,14 +25,17 @@ const api = {
     frames: app.frames }),
   setView(mode) {
     if (!VIEW_MODES.includes(mode)) return Promise.reject(new Error(`unknown view ${mode}`));
-    app.view = mode; panel.sync(); return nextFrame();
+    app.view = mode; panel.sync(); reportClient(); return nextFrame();
   },
   setSwap(b) { app.swap = !!b; panel.sync(); return nextFrame(); },
-  setZoom(z) { setZoom(z); return nextFrame(); },
+  setZoom(z) { setZoom(z); reportClient(); return nextFrame(); },
   setMode(mode, height) { return send({ op: 'mode', mode, height: height ?? null }); },
   setHeight(h) { return send({ op: 'height', height: h }); },
   setCarriage(X, Y) { return send({ op: 'cycle', X, Y }); },
-  setParallax(px) { return send({ op: 'cycle', X: app.st.X, Y: app.st.Y, px }); },
+  setParallax(px) {
+    if (app.st.mode === 'free') return send({ op: 'free', X: app.st.X, Y: app.st.Y, DX: px, DY: app.st.DY });
+    return send({ op: 'cycle', X: app.st.X, Y: app.st.Y, px });
+  },
   setDXDY(DX, DY) { return send({ op: 'free', X: app.st.X, Y: app.st.Y, DX, DY }); },
   driveTo(X, Y, Z) { return send({ op: 'drive', X, Y, Z }); },
   record(code) { return send({ op: 'record', code }); },
@@ -49,6 +52,13 @@ const api = {
   features: () => app.featureList,
   // canvas pixels: x, y from the top-left; RGBA bytes, rows from the top
   pixels: (x, y, w, h) => Array.from(app.renderer.pixels(x, y, w, h)),
+  compositeTest: (view, left, right) => { const r = app.renderer.compositeTest(view, left, right); app.dirty = true; return r; },
+  pixelsBase64(x, y, w, h) {
+    const a = app.renderer.pixels(x, y, w, h);
+    let s = '';
+    for (let i = 0; i < a.length; i += 0x8000) s += String.fromCharCode.apply(null, a.subarray(i, i + 0x8000));
+    return btoa(s);
+  },
   canvasSize: () => [app.renderer.canvas.width, app.renderer.canvas.height],
   latencies: () => app.latencies.slice(),
   clearLatencies() { app.latencies = []; },
