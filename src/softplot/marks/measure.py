@@ -317,7 +317,8 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         level = res.level[idx]
         noise = np.full(len(idx), noise_set)
         B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
-                                       np.hypot(s_med, np.sqrt(1 / 12)))
+                                       np.hypot(s_med, np.sqrt(1 / 12)),
+                                       iters=scene_tv.iterations(p))
         wt = _edge_weights(B, noise, REFIT_DELTA)
         if keep is not None:
             wt = np.where(keep[idx], wt, 0.0).astype(np.float32)

@@ -20,6 +20,11 @@ edge costs more total variation than it saves in residual). ``mu`` is a multiple
 noise. The problem is solved by the primal-dual method of Chambolle and Pock (2011) from the
 opening's estimate, a fixed number of iterations.
 
+The passes after the first start from the last pass's scene (:data:`ITERATIONS_WARM`
+iterations, :func:`iterations`). The solve can be restricted to the band around the mark
+(``band_px``, :func:`band_rows`): the scene beyond it, which the mark does not reach, is held
+at the starting estimate (an option: not the default, see :data:`BAND_PX`).
+
 All arrays are patches ``(N, h, w)`` in the pixel system of the scan (row = y, column = x), grey
 units of :mod:`softplot.marks.lsm`. The compiled kernel (numba, :data:`kernels.AVAILABLE`) and the
 NumPy path give the same values to float32 rounding
@@ -28,6 +33,7 @@ NumPy path give the same values to float32 rounding
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import cv2
@@ -36,15 +42,33 @@ from scipy.ndimage import correlate1d
 
 from softplot.marks import kernels
 
-__all__ = ["gauss_taps", "deconv_tv", "ITERATIONS", "MU"]
+__all__ = ["gauss_taps", "deconv_tv", "iterations", "ITERATIONS", "MU"]
 
-#: iterations of the primal-dual solver per joint-scene pass (the first from the opening's
-#: estimate, the next from the last pass's): a pixel without data moves by at most
-#: ``4 tau mu`` per iteration, and with 20 the busy renders' crosses with a scene edge along a
-#: bar stopped short of the joint optimum (docs/accuracy.md)
+#: iterations of the primal-dual solver of the first joint-scene pass (from the opening's
+#: estimate): a pixel without data moves by at most ``4 tau mu`` per iteration, and with 20
+#: the busy renders' crosses with a scene edge along a bar stopped short of the joint optimum
 ITERATIONS = 60
+#: iterations of the passes after the first, which start from the last pass's scene
+#: (:func:`iterations`; fewer lost accuracy on the noisiest busy render of the accuracy
+#: sweep, docs/benchmarks.md "Busy scenes")
+ITERATIONS_WARM = 60
+
+
+def iterations(p: int) -> int:
+    """Solver iterations of joint-scene pass ``p`` (0: from the opening's estimate)."""
+    return ITERATIONS if p == 0 else ITERATIONS_WARM
+
+
 #: TV weight in units of the patch's noise
 MU = 1.0
+#: with ``band_px`` (:func:`deconv_tv`) the scene is free only in the band around each
+#: fitted mark (pixels within this many px of where its blurred template ``T`` exceeds
+#: :data:`BAND_T`); outside it the scene is held at the starting estimate. Default: the whole
+#: patch (``inf``): with 8 px and 40/30 iterations the busy renders' RMS was that of the
+#: whole patch on most renders at half the solver's time, but not on the noisiest
+#: (docs/benchmarks.md, "Busy scenes")
+BAND_PX = math.inf
+BAND_T = 0.01
 #: steps of the primal-dual solver: tau * sigma * ||K||^2 <= 1 with ||K||^2 <= 8 + 1
 TAU = SIGMA = 1.0 / 3.0
 
@@ -161,6 +185,143 @@ def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover
                 xout[q, i, j] = X[i, j]
 
 
+@njit(fastmath=True, cache=True, nogil=True)
+def _blur_rows(src, dst, tmp, row, k, r, h, w, lo, hi, nlo, nhi):  # pragma: no cover - compiled
+    # the separable blur of ``_blur`` at the band's pixels only: row i's columns [lo, hi);
+    # the horizontal pass where the vertical one reads it ([nlo, nhi): rows i - r .. i + r)
+    for i in range(h):
+        a, b = nlo[i], nhi[i]
+        if a >= b:
+            continue
+        for j in range(b - a + 2 * r):  # the row's segment, edges replicated
+            row[j] = src[i, min(max(a - r + j, 0), w - 1)]
+        for j in range(b - a):
+            acc = np.float32(0.0)
+            for t in range(2 * r + 1):
+                acc += k[t] * row[j + t]
+            tmp[i, a + j] = acc
+    # the vertical pass over whole rows (it vectorises; the columns outside the band are
+    # not used, and ``tmp`` there holds finite values of earlier passes)
+    for i in range(h):
+        if lo[i] >= hi[i]:
+            continue
+        for j in range(w):
+            dst[i, j] = 0.0
+        for t in range(-r, r + 1):
+            ii = min(max(i + t, 0), h - 1)
+            kt = k[t + r]
+            for j in range(w):
+                dst[i, j] += kt * tmp[ii, j]
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _kernel_band(g, T, m, B0, mu, k, iters, tau, sig, lo, hi, out,
+                 xout):  # pragma: no cover - compiled
+    # ``_kernel`` with the scene free only in the band of each patch (row i: columns
+    # [lo[q, i], hi[q, i])), the rest held at B0: the data term and the total variation of
+    # the edges leaving a band pixel (right, down)
+    n, h, w = g.shape
+    r = (k.shape[0] - 1) // 2
+    one = np.float32(1.0)
+    isg = one / (one + sig)
+    X = np.empty((h, w), np.float32)
+    Xb = np.empty((h, w), np.float32)
+    px = np.zeros((h, w), np.float32)
+    py = np.zeros((h, w), np.float32)
+    y2 = np.zeros((h, w), np.float32)
+    t1 = np.zeros((h, w), np.float32)
+    t2 = np.zeros((h, w), np.float32)
+    tmp = np.zeros((h, w), np.float32)
+    W = np.empty((h, w), np.float32)
+    f = np.empty((h, w), np.float32)
+    row = np.empty(w + 2 * r, np.float32)
+    nlo = np.empty(h, np.int64)
+    nhi = np.empty(h, np.int64)
+    for q in range(n):
+        il = one / mu[q]
+        lq = lo[q]
+        hq = hi[q]
+        for i in range(h):
+            a = w
+            b = 0
+            for t in range(-r, r + 1):
+                ii = min(max(i + t, 0), h - 1)
+                if hq[ii] > lq[ii]:
+                    a = min(a, lq[ii])
+                    b = max(b, hq[ii])
+            nlo[i] = a
+            nhi[i] = max(a, b)
+        for i in range(h):
+            for j in range(w):
+                X[i, j] = B0[q, i, j]
+                Xb[i, j] = B0[q, i, j]
+                px[i, j] = 0.0
+                py[i, j] = 0.0
+                y2[i, j] = 0.0
+                t1[i, j] = 0.0
+                W[i, j] = one - T[q, i, j]
+                f[i, j] = sig * (g[q, i, j] - m[q] * T[q, i, j])
+        for _ in range(iters):
+            # dual step of the TV term (loops split so that the inner ones have no branch)
+            for i in range(h):
+                a, b = lq[i], hq[i]
+                if a >= b:
+                    continue
+                bi = min(b, w - 1)
+                if i < h - 1:
+                    for j in range(a, bi):
+                        px[i, j], py[i, j] = _project(px[i, j] + sig * (Xb[i, j + 1] - Xb[i, j]),
+                                                      py[i, j] + sig * (Xb[i + 1, j] - Xb[i, j]),
+                                                      il)
+                    if b == w:
+                        px[i, w - 1], py[i, w - 1] = _project(
+                            px[i, w - 1], py[i, w - 1] + sig * (Xb[i + 1, w - 1] - Xb[i, w - 1]),
+                            il)
+                else:
+                    for j in range(a, bi):
+                        px[i, j], py[i, j] = _project(px[i, j] + sig * (Xb[i, j + 1] - Xb[i, j]),
+                                                      py[i, j], il)
+                    if b == w:
+                        px[i, w - 1], py[i, w - 1] = _project(px[i, w - 1], py[i, w - 1], il)
+            # dual step of the data term
+            _blur_rows(Xb, t2, tmp, row, k, r, h, w, lq, hq, nlo, nhi)
+            for i in range(h):
+                for j in range(lq[i], hq[i]):
+                    y2[i, j] = (y2[i, j] + sig * W[i, j] * t2[i, j] - f[i, j]) * isg
+                    t1[i, j] = W[i, j] * y2[i, j]
+            _blur_rows(t1, t2, tmp, row, k, r, h, w, lq, hq, nlo, nhi)
+            # primal step and extrapolation (p is 0 outside the band and on the far edges)
+            for i in range(h):
+                a, b = lq[i], hq[i]
+                if a >= b:
+                    continue
+                if a == 0:
+                    d = -t2[i, 0] + px[i, 0] + py[i, 0]
+                    if i > 0:
+                        d -= py[i - 1, 0]
+                    xn = X[i, 0] + tau * d
+                    Xb[i, 0] = np.float32(2.0) * xn - X[i, 0]
+                    X[i, 0] = xn
+                    a = 1
+                if i > 0:
+                    for j in range(a, b):
+                        d = -t2[i, j] + px[i, j] - px[i, j - 1] + py[i, j] - py[i - 1, j]
+                        xn = X[i, j] + tau * d
+                        Xb[i, j] = np.float32(2.0) * xn - X[i, j]
+                        X[i, j] = xn
+                else:
+                    for j in range(a, b):
+                        d = -t2[i, j] + px[i, j] - px[i, j - 1] + py[i, j]
+                        xn = X[i, j] + tau * d
+                        Xb[i, j] = np.float32(2.0) * xn - X[i, j]
+                        X[i, j] = xn
+        _blur(X, t2, tmp, row, k, r, h, w)
+        for i in range(h):
+            for j in range(w):
+                out[q, i, j] = t2[i, j]
+                xout[q, i, j] = X[i, j]
+
+
 # -- NumPy path ----------------------------------------------------------------------------------
 
 
@@ -187,7 +348,8 @@ def _div(px, py):
     return d
 
 
-def _numpy(g, T, m, B0, mu, k, iters):
+def _numpy(g, T, m, B0, mu, k, iters, band=None):
+    """The NumPy path of both kernels (``band``: (lo, hi) of :func:`band_rows`, or None)."""
     tau, sig = np.float32(TAU), np.float32(SIGMA)
     W = 1.0 - T
     f = sig * (g - m[:, None, None] * T)
@@ -197,6 +359,10 @@ def _numpy(g, T, m, B0, mu, k, iters):
     py = np.zeros_like(X)
     y2 = np.zeros_like(X)
     il = (1.0 / mu)[:, None, None].astype(np.float32)
+    M = None
+    if band is not None:
+        cols = np.arange(g.shape[2])[None, None, :]
+        M = (cols >= band[0][:, :, None]) & (cols < band[1][:, :, None])
     for _ in range(iters):
         gx, gy = _grad(Xb)
         px += sig * gx
@@ -205,15 +371,45 @@ def _numpy(g, T, m, B0, mu, k, iters):
         px /= nn
         py /= nn
         y2 = (y2 + sig * W * _blur_np(Xb, k) - f) / (1.0 + sig)
+        if M is not None:
+            px *= M
+            py *= M
+            y2 *= M
         Xn = X + tau * (_div(px, py) - _blur_np(W * y2, k))
+        if M is not None:
+            Xn = np.where(M, Xn, X)
         Xb = 2.0 * Xn - X
         X = Xn
     return _blur_np(X, k), X.astype(np.float32)
 
 
+def band_rows(T: np.ndarray, band_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per patch and row, the columns ``[lo, hi)`` of the band around each mark: the pixels
+    within ``band_px`` (square neighbourhood) of ``T > BAND_T``, as one interval per row
+    (the hull of the row's band pixels). ``T`` (N, h, w) pixel system; returns two (N, h)
+    int64 arrays (``lo == hi`` where a row has none; a patch without any mark pixel is
+    whole)."""
+    n, h, w = T.shape
+    r = max(0, int(np.ceil(band_px)))
+    ker = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    lo = np.zeros((n, h), np.int64)
+    hi = np.zeros((n, h), np.int64)
+    for q in range(n):
+        M = cv2.dilate((T[q] > BAND_T).astype(np.uint8), ker) > 0
+        anyr = M.any(axis=1)
+        first = np.argmax(M, axis=1)
+        last = w - np.argmax(M[:, ::-1], axis=1)
+        if anyr.any():
+            lo[q] = np.where(anyr, first, 0)
+            hi[q] = np.where(anyr, last, 0)
+        else:  # no mark in the patch: the whole patch
+            hi[q] = w
+    return lo, hi
+
+
 def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
               mu: np.ndarray, s_e: float, iters: int | None = None,
-              compiled: bool | None = None) -> np.ndarray:
+              compiled: bool | None = None, band_px: float | None = None) -> np.ndarray:
     """The blurred scene ``B = G * X`` under N fitted marks (see the module docstring).
 
     Parameters
@@ -234,6 +430,9 @@ def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
         Iterations of the solver (default :data:`ITERATIONS`).
     compiled : bool, optional
         Use the numba kernel (default: when it is available).
+    band_px : float, optional
+        Solve for the scene only in the band around each mark (:func:`band_rows`; the rest
+        held at ``B0``); default :data:`BAND_PX`; ``math.inf`` solves over the whole patch.
 
     Returns
     -------
@@ -249,14 +448,21 @@ def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
     iters = ITERATIONS if iters is None else iters
     if compiled is None:
         compiled = kernels.AVAILABLE and kernels.ready()
+    band_px = BAND_PX if band_px is None else float(band_px)
+    band = None if not np.isfinite(band_px) else band_rows(T, band_px)
     if not compiled:
-        return _numpy(g, T, m, B0, mu, k, int(iters))
+        return _numpy(g, T, m, B0, mu, k, int(iters), band)
     out = np.empty_like(g)
     xout = np.empty_like(g)
     try:
-        _kernel(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA), out, xout)
+        if band is None:
+            _kernel(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA), out,
+                    xout)
+        else:
+            _kernel_band(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA),
+                         band[0], band[1], out, xout)
     except Exception as exc:  # noqa: BLE001 - numba cannot compile it here: the NumPy path
         warnings.warn(f"softplot: compiled scene kernel unavailable ({type(exc).__name__}: "
                       f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)
-        return _numpy(g, T, m, B0, mu, k, int(iters))
+        return _numpy(g, T, m, B0, mu, k, int(iters), band)
     return out, xout
