@@ -107,3 +107,25 @@ def test_forward_model_monte_carlo_sigma0_and_spread():
         d.xy[:] = xy_inv + rng.normal(0, SIGMA, xy_inv.shape)
         s0_inv.append(bundle_adjust(d, BundleOptions()).sigma0)
     assert abs(np.mean(s0_inv) - 1.0) > 0.01, np.mean(s0_inv)
+
+
+def test_forward_is_the_default_for_self_calibration(tmp_path):
+    """No ``lens`` in cameras.toml: forward once a distortion parameter is freed (also by
+    --free), inverse for a fixed lens; an explicit ``lens`` is kept."""
+    from softplot.cli._bundle_common import apply_free
+    from softplot.orientation.bundle_io import read_project, write_project
+
+    net = make_testfield(n_photos=4, seed=0)
+    write_project(tmp_path / "p", net.to_bundle_data(free=("c",)))
+    toml = tmp_path / "p" / "cameras.toml"
+    explicit = toml.read_text()
+    assert 'lens = "inverse"' in explicit
+    toml.write_text(explicit.replace('lens = "inverse"\n', ""))
+    d = read_project(tmp_path / "p")
+    assert d.cameras[0].model == "inverse"  # only c free: the lens is known
+    apply_free(d, ("c", "x0", "y0", "k1"))
+    assert d.cameras[0].model == "forward"
+    toml.write_text(explicit.replace('free = ["c"]', 'free = ["c", "k1"]'))
+    e = read_project(tmp_path / "p")
+    apply_free(e, ("c", "k1"))
+    assert e.cameras[0].model == "inverse"  # as the file says

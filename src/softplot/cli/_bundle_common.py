@@ -67,6 +67,7 @@ def apply_free(data, free) -> None:
             np.inf if n in free else (0.0 if np.isinf(s) else s)
             for n, s in zip(INTRINSICS, c.sigma, strict=True)
         ]
+        c.choose_model()
 
 
 def refuse_existing_truth(root: Path) -> None:

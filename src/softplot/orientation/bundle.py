@@ -114,6 +114,13 @@ class BundleCamera:
     sigma_image_mm: float | None = None
     model: str = "inverse"
     image_size: tuple | None = None
+    model_auto: bool = False
+
+    def choose_model(self) -> None:
+        """With ``model_auto`` (no lens model given): ``forward`` when a distortion parameter
+        (k1..b2, a) is free or weighted - self-calibration -, else ``inverse``."""
+        if self.model_auto:
+            self.model = "forward" if np.any(self.sigma[3:] != 0) else "inverse"
 
     def __post_init__(self) -> None:
         n = len(INTRINSICS)

@@ -130,7 +130,8 @@ def read_cameras(path: Path) -> list[BundleCamera]:
         px = t.get("pixel_size_um")
         weighted = {k: float(v) for k, v in sig.items()}
         lens = t.get("lens")
-        if lens is None:  # self-calibration of the lens: the forward model (unbiased sigma0)
+        auto = lens is None  # self-calibration of the lens: the forward model (unbiased sigma0)
+        if auto:
             lens = "forward" if (set(free) | set(weighted)) & set(INTRINSICS[3:]) else "inverse"
         bc = BundleCamera.build(
             name,
@@ -140,6 +141,7 @@ def read_cameras(path: Path) -> list[BundleCamera]:
             None if px is None else float(px) / 1000.0,
             model=str(lens),
         )
+        bc.model_auto = auto
         if "image_width_px" in t or "image_height_px" in t:
             try:
                 bc.image_size = (int(t["image_width_px"]), int(t["image_height_px"]))

@@ -80,6 +80,7 @@ def _prepare(data: BundleData, free) -> BundleData:
                     c.sigma[i] = np.inf
                 elif np.isinf(c.sigma[i]):
                     c.sigma[i] = 0.0
+            c.choose_model()
     if not data.control_used.any():
         raise SoftplotError("calibration needs the test field's target coordinates (control)")
     need = not (
