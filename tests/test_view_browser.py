@@ -303,3 +303,50 @@ def test_a_browser_without_webgl2_gets_a_plain_message(env):
     err = page.evaluate("window.softplot.ready.then(() => 'ok', e => String(e))")
     assert "WebGL2" in err
     page.close()
+
+
+def test_mono_measurement_refines_writes_pixel_csvs_and_runs_a_relative_orientation(env):
+    from softplot.correction import read_points_csv
+
+    page, t = env["page"], env["t"]
+    dots = t["dots"]
+    # the operator clicks the dot exactly in the left scan and 1.4, -0.9 px off in the right
+    lx, ly = dots["left"][0]
+    rx, ry = dots["right"][0]
+    js(page, f"softplot.measure('left', 'D1', {lx}, {ly})")
+    js(page, f"softplot.measure('right', 'D1', {rx + 1.4}, {ry - 0.9})")
+    js(page, "softplot.refine('D1')")
+    p = js(page, "softplot.proposal()")
+    assert abs(p["x"] - rx) < 0.05 and abs(p["y"] - ry) < 0.05, p
+    # offered, never forced: the right point is still the click until accepted
+    names, xy = read_points_csv(t["folder"] / "measurements" / "right.pixels.csv")
+    assert np.allclose(xy[names.index("D1")], [rx + 1.4, ry - 0.9], atol=1e-4)
+    page.click("#b-accept")
+    wait(page, f"Math.abs(softplot.measurements().right.find(p => p[0] === 'D1')[1] - {rx}) < 0.05")
+    # a clicked point: mono-left, measure tool, click at a known canvas offset from the mark
+    js(page, "softplot.setMark('none').then(() => softplot.setView('mono-left'))"
+             ".then(() => softplot.setZoom(2))")
+    st = js(page, "softplot.state()")
+    page.check("#measure")
+    page.fill("#pname", "C1")
+    page.mouse.click(CX + 0.5 - 20, CY + 0.5 + 10)  # left of the panel
+    wait(page, "softplot.measurements().left.some(p => p[0] === 'C1')")
+    c1 = [q for q in js(page, "softplot.measurements()")["left"] if q[0] == "C1"][0]
+    assert np.allclose(c1[1:], [st["left_px"][0] - 10, st["left_px"][1] + 5], atol=0.26)
+    page.uncheck("#measure")
+    # six tie points at their truth pixels -> relative orientation from the page
+    rng = np.random.default_rng(2)
+    for i in range(6):
+        P = [150 + rng.uniform(-60, 60), rng.uniform(-60, 60), rng.uniform(-20, 20)]
+        for side in ("left", "right"):
+            x, y = truth_px(t["model"], t["frame"], side, P)[0]
+            js(page, f"softplot.measure('{side}', 'T{i}', {x}, {y})")
+    js(page, "softplot.measure('left', 'C1', 5, 5)")  # left only: not a tie point
+    js(page, "softplot.unmeasure('right', 'D1')")  # its dots are rounded truth pixels
+    js(page, "softplot.relor()")
+    r = js(page, "softplot.relorResult()")
+    assert {q["name"] for q in r["points"]} == {f"T{i}" for i in range(6)}
+    assert r["sigma0"] < 0.002 and max(abs(q["py"]) for q in r["points"]) < 0.005
+    for side in ("left", "right"):
+        names, xy = read_points_csv(t["folder"] / "measurements" / f"{side}.pixels.csv")
+        assert {f"T{i}" for i in range(6)} <= set(names)

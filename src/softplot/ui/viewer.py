@@ -102,6 +102,10 @@ class Viewer:
         self.lock = threading.Lock()
         self.client = {"zoom": None, "view": None, "frames": 0}
         self.journaled_height = self.session.height
+        from softplot.ui.measure import Measurements
+
+        self.measure = Measurements(self.folder, {s: (self.pyramids[s].width,
+                                                      self.pyramids[s].height) for s in SIDES})
         self._start()
         self.closed = False
 
@@ -243,6 +247,8 @@ class Viewer:
                                "view": msg.get("view") if msg.get("view") in VIEWS else None,
                                "frames": int(msg.get("frames") or 0)}
                 return {"type": "ok", "seq": msg.get("seq")}
+            elif op in ("measure", "unmeasure", "refine", "relor"):
+                return self._measure_op(op, msg)
             elif op == "state":
                 pass
             elif op == "features":
@@ -252,7 +258,68 @@ class Viewer:
             out = {"type": "state", "seq": msg.get("seq"), "state": self.state()}
             if feats:
                 out["features"] = self.feature_pixels()
+            if op == "features":
+                out["measure"] = self.measure.as_dict()
             return out
+
+    # ------------------------------------------------------------------ measurement
+    def _measure_op(self, op: str, msg: dict) -> dict:
+        out = {"type": "state", "seq": msg.get("seq"), "state": self.state()}
+        m = self.measure
+        if op == "measure":
+            side = _text(msg, "side")
+            name = _text(msg, "name")
+            m.set(side, name, _num(msg, "x"), _num(msg, "y"))
+            x, y = m.points[side][name]
+            out["note"] = f"{side} {name}: {x:.2f}, {y:.2f} px -> {m.path(side).name}"
+        elif op == "unmeasure":
+            m.delete(_text(msg, "side"), _text(msg, "name"))
+        elif op == "refine":
+            out["proposal"] = self.refine(_text(msg, "name"))
+            p = out["proposal"]
+            out["note"] = (f"right {p['name']}: proposed {p['x']:.2f}, {p['y']:.2f} px (moved "
+                           f"{p['shift'][0]:+.2f}, {p['shift'][1]:+.2f}; sigma {p['sigma']:.3f} "
+                           f"px, ncc {p['ncc']:.2f}): accept it to keep it")
+        else:
+            out["relor"] = r = self.relor()
+            worst = max(r["points"], key=lambda q: abs(q["py"]))
+            out["note"] = (f"relative orientation of {len(r['points'])} points: sigma0 "
+                           f"{r['sigma0'] * 1000:.1f} um, largest y-parallax {worst['name']} "
+                           f"{worst['py'] * 1000:+.1f} um")
+        out["measure"] = m.as_dict()
+        return out
+
+    def refine(self, name: str) -> dict:
+        """Offer a sub-pixel right position for point ``name`` (measured in both scans) by
+        least-squares matching of its left patch (:func:`softplot.ui.measure.refine_right`)."""
+        from softplot.ui.measure import refine_right
+
+        pts = self.measure.points
+        if name not in pts["left"] or name not in pts["right"]:
+            raise SoftplotError(f"point {name!r}: measure it in both scans first")
+        p = refine_right(self.pyramids["left"].levels[0], self.pyramids["right"].levels[0],
+                         pts["left"][name], pts["right"][name])
+        p["name"] = name
+        return p
+
+    def relor(self) -> dict:
+        """Relative orientation (dependent pair) of the points measured in both scans, their
+        pixels reduced to photo mm by each scan's film correction; per-point y-parallax."""
+        from softplot.orientation.relative import relative_orientation
+
+        pts = self.measure.points
+        names = [n for n in pts["left"] if n in pts["right"]]
+        if len(names) < 5:
+            raise SoftplotError(f"relative orientation needs >= 5 points measured in both "
+                                f"scans, found {len(names)}")
+        xy = {s: self.maps[s].pixel_to_photo(np.array([pts[s][n] for n in names]))
+              for s in SIDES}
+        m = self.plotter.model
+        bx = float(np.linalg.norm(np.asarray(m.right.X0) - np.asarray(m.left.X0))) or 1.0
+        r = relative_orientation(xy["left"], xy["right"], m.left.c, bx=bx, names=names)
+        return {"sigma0": float(r.sigma0), "redundancy": int(r.redundancy),
+                "angles_rad": [float(a) for a in r.angles2],
+                "points": [{"name": n, "py": float(p)} for n, p in zip(names, r.py, strict=True)]}
 
     def close(self) -> None:
         """Save the motor state in the journal and close it (and the motors)."""

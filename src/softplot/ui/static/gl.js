@@ -288,8 +288,11 @@ export class Renderer {
     for (const f of ov.features) {
       const pts = [];
       for (const [x, y] of f.px) pts.push((x - cx) * zoom, (y - cy) * zoom);
-      const col = f.kind === 'open' ? [0.2, 0.9, 1.0] : [1.0, 0.85, 0.1];
-      if (f.kind === 'point' || pts.length === 2) {
+      const col = f.kind === 'open' ? [0.2, 0.9, 1.0] : f.kind === 'measured' ? [1.0, 0.3, 1.0] : [1.0, 0.85, 0.1];
+      if (f.kind === 'measured') {
+        const [x, y] = pts, a = 6;
+        this.lines(gl.LINES, [x - a, y, x - 1, y, x + 1, y, x + a, y, x, y - a, x, y - 1, x, y + 1, x, y + a], col, hw, hh);
+      } else if (f.kind === 'point' || pts.length === 2) {
         const [x, y] = pts, a = 5;
         this.lines(gl.LINES, [x - a, y - a, x + a + 1, y + a + 1, x - a, y + a, x + a + 1, y - a - 1], col, hw, hh);
       } else this.lines(gl.LINE_STRIP, pts, col, hw, hh);

@@ -18,6 +18,7 @@ const app = {
   features: [[], []], featureList: [], dirty: true, seq: 0, pending: new Map(),
   afterFrame: [], sentAt: new Map(), latencies: [], lastDrawnSeq: 0, stSeq: 0,
   ws: null, renderer: null, readyDone: false, measure: { left: [], right: [] },
+  proposal: null, relor: null,
 };
 const api = {
   ready,
@@ -63,9 +64,12 @@ const api = {
   latencies: () => app.latencies.slice(),
   clearLatencies() { app.latencies = []; },
   measure: (side, name, x, y) => send({ op: 'measure', side, name, x, y }),
+  unmeasure: (side, name) => send({ op: 'unmeasure', side, name }),
   refine: (name) => send({ op: 'refine', name }),
   relor: () => send({ op: 'relor' }),
   measurements: () => app.measure,
+  proposal: () => app.proposal,
+  relorResult: () => app.relor,
   lastReply: null,
 };
 window.softplot = api;
@@ -106,12 +110,16 @@ function setWindow(lo, hi) {
 function onReply(m) {
   api.lastReply = m;
   if (m.state) { app.st = m.state; app.stSeq = m.seq || app.stSeq; }
-  if (m.features) {
-    app.featureList = m.features;
-    app.features = [m.features.map(f => ({ kind: f.kind, px: f.left })),
-      m.features.map(f => ({ kind: f.kind, px: f.right }))];
-  }
+  if (m.features) app.featureList = m.features;
   if (m.measure) app.measure = m.measure;
+  if (m.proposal) app.proposal = m.proposal;
+  if (m.relor) app.relor = m.relor;
+  if (m.features || m.measure) {
+    // recorded features (object vertices projected into each scan) and measured points
+    const meas = side => (app.measure[side] || []).map(([, x, y]) => ({ kind: 'measured', px: [[x, y]] }));
+    app.features = [app.featureList.map(f => ({ kind: f.kind, px: f.left })).concat(meas('left')),
+      app.featureList.map(f => ({ kind: f.kind, px: f.right })).concat(meas('right'))];
+  }
   panel.status(m);
   app.dirty = true;
   const p = app.pending.get(m.seq);

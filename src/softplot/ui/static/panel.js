@@ -34,6 +34,11 @@ export class Panel {
     $('b-undo').onclick = () => this.act({ op: 'undo' });
     $('b-refine').onclick = () => this.act({ op: 'refine', name: $('pname').value });
     $('b-relor').onclick = () => this.act({ op: 'relor' });
+    $('b-accept').onclick = () => {
+      const p = app.proposal;
+      if (p) this.act({ op: 'measure', side: 'right', name: p.name, x: p.x, y: p.y });
+      app.proposal = null;
+    };
 
     canvas.addEventListener('click', e => {
       if ($('measure').checked) return this.measureClick(e);
@@ -155,6 +160,10 @@ export class Panel {
       `${st.features} feature(s)${st.open_vertices ? `, line open: ${st.open_vertices} vertices` : ''}` +
       (st.in_travel ? '' : '\nDX/DY outside the travel') + (st.halted ? `\nHALTED: ${st.halted}` : '');
     $('message').textContent = m.type === 'error' ? m.message : (m.note || '');
+    $('b-accept').hidden = !(m.proposal || (this.app.proposal && !m.measure));
+    if (m.relor) {
+      $('message').textContent += '\n' + m.relor.points.map(p => `${p.name}: py ${(p.py * 1000).toFixed(1)} um`).join('\n');
+    }
     if (document.activeElement !== $('height') && st.height != null) $('height').value = st.height;
     if (document.activeElement !== $('mode')) $('mode').value = st.mode;
   }
