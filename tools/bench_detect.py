@@ -32,9 +32,16 @@ Cases
   frame: a smooth grey background with grain and the 8 fiducials (4 circle-dots, 4 crosses)
   stamped at known positions (the synthetic renderer would take minutes at this size).
 
+Busy scenes (``--busy``): the two busy cases timed in this process with the default joint
+scene estimate and with the band-restricted solve (``scene_tv.BAND_PX = 8``, 40/30
+iterations), alternating, load + detect each; and ``softplot detect`` over ``--batch`` busy
+1200 dpi scans in one process (a subprocess: interpreter start, imports and the compiled
+kernels' loading included) against one scan per process, per scan.
+
 Usage::
 
     .venv/bin/python tools/bench_detect.py [--runs 5] [--cases rollei-2400,rollei-1200,aerial-19k]
+    .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8]
 """
 
 from __future__ import annotations
@@ -192,14 +199,65 @@ def _load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
 
 
+def busy(runs: int, batch: int) -> None:
+    """The busy-scene figures (see the module docstring)."""
+    from softplot.io import load_scan
+    from softplot.marks import detect, scene_tv
+    from softplot.synthetic import ScanSpec, write_scan
+
+    variants = {"default": (scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM),
+                "band 8 px, 40/30": (8.0, 40, 30)}
+    print(f"load average at start: {_load()} (2 cores; figures taken above 1 are provisional)")
+    with tempfile.TemporaryDirectory(prefix="bench_busy_") as tmp:
+        d = Path(tmp)
+        for dpi in (1200, 2400):
+            path, _ = write_scan(d, "rollei-6006", ScanSpec(dpi=dpi, rotation_deg=1.5,
+                                                             scene="busy"), seed=7,
+                                 stem=f"busy-{dpi}")
+            times = {k: [] for k in variants}
+            for i in range(runs + 1):
+                for k, (band, first, warm) in variants.items():
+                    scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM = \
+                        band, first, warm
+                    t = time.perf_counter()
+                    det = detect(load_scan(path), "rollei-6006")
+                    if i:  # the first round warms caches
+                        times[k].append(time.perf_counter() - t)
+            scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM = variants["default"]
+            for k, v in times.items():
+                print(f"busy {dpi} dpi, {k}: median {statistics.median(v):.3f} s (min "
+                      f"{min(v):.3f}, n={len(v)}), scene model {det.scene}")
+        if batch:
+            paths = [write_scan(d, "rollei-6006", ScanSpec(dpi=1200, rotation_deg=1.5,
+                                                            scene="busy"), seed=100 + i,
+                                stem=f"batch-{i}")[0] for i in range(batch)]
+            cmd = [sys.executable, "-c", "from softplot.cli import main; main()", "detect",
+                   "--camera", "rollei-6006"]
+            t = time.perf_counter()
+            subprocess.run(cmd + [str(p) for p in paths], check=True, capture_output=True)
+            many = (time.perf_counter() - t) / batch
+            t = time.perf_counter()
+            for p in paths[:3]:
+                subprocess.run(cmd + [str(p)], check=True, capture_output=True)
+            one = (time.perf_counter() - t) / 3
+            print(f"softplot detect, busy 1200 dpi: {batch} scans in one process "
+                  f"{many:.3f} s per scan; one scan per process {one:.3f} s per scan")
+    print(f"load average at end: {_load()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--busy", action="store_true", help="the busy-scene figures only")
+    ap.add_argument("--batch", type=int, default=8, help="scans of the --busy batch run")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         child(*a.child)
+        return
+    if a.busy:
+        busy(a.runs, a.batch)
         return
     cases = [c for c in a.cases.split(",") if c]
     from softplot.io import load_scan
