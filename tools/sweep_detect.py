@@ -35,6 +35,8 @@ def main(argv=None) -> int:
     ap.add_argument("--table", type=Path, help="write the markdown table here")
     ap.add_argument("--failures", type=Path, help="write the failing cases here (markdown)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON line per case here")
+    ap.add_argument("--every", type=int, default=20,
+                    help="rewrite --table and --failures every this many renders")
     a = ap.parse_args(argv)
 
     from softplot.synthetic.sweep import (
@@ -70,6 +72,8 @@ def main(argv=None) -> int:
             with a.jsonl.open("a", encoding="utf-8") as f:
                 f.write(json.dumps({"seed": seed, "case": case.describe(),
                                     "conditions": list(case.conditions), **d}) + "\n")
+        if (k + 1) % a.every == 0 and k + 1 < len(seeds):  # the figures so far
+            _write(a, aggregate(results), failures, k + 1, seeds)
     agg = aggregate(results)
     md = table(agg)
     print()
@@ -79,17 +83,26 @@ def main(argv=None) -> int:
     short = {k: misses(v) for k, v in agg.items() if misses(v)}
     for k, v in short.items():
         print(f"  {k}: misses {'; '.join(v)}")
+    _write(a, agg, failures, len(seeds), seeds)
+    return 0
+
+
+def _write(a, agg, failures, done, seeds) -> None:
+    from softplot.synthetic.sweep import table
+
+    span = f"seeds {seeds[0]}-{seeds[done - 1]}" if seeds == list(
+        range(seeds[0], seeds[0] + len(seeds))) else f"{done} given seeds"
     if a.table:
-        a.table.write_text(md + "\n", encoding="utf-8")
+        a.table.write_text(f"{done} of {len(seeds)} renders ({span})\n\n" + table(agg) + "\n",
+                           encoding="utf-8")
     if a.failures:
-        lines = [f"# Detection sweep failures ({len(failures)} of {len(seeds)} renders)", "",
+        lines = [f"# Detection sweep failures ({len(failures)} of {done} renders, {span})", "",
                  "Rerun one with `tools/sweep_detect.py --seeds SEED` "
                  "(`softplot.synthetic.sweep.make_case(SEED)` gives the render).", ""]
         for case, bad in failures:
             lines.append(f"- **seed {case.seed}** ({case.describe()})")
             lines += [f"  - {b}" for b in bad]
         a.failures.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return 0
 
 
 if __name__ == "__main__":
