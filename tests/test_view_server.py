@@ -276,3 +276,27 @@ def test_port_in_use_moved_and_changed_scans_are_one_line(tmp_path):
     assert r.returncode == 2 and r.stdout == "" and r.stderr.count("\n") == 1, r.stderr
     assert "left scan has changed" in r.stderr and "left.tif" in r.stderr
     assert main is not None
+
+
+def test_the_demo_session_opens_in_the_viewer(tmp_path):
+    """``softplot demo`` writes OUT/session; the viewer opens it (scans, pyramids, the mark
+    on the traced contours' model) and its first contour vertex is drawn at the scan pixels
+    the session's model and film corrections give."""
+    from softplot.pipeline.demo import DemoConfig, run_demo
+
+    run_demo(tmp_path / "demo", DemoConfig(dpi=300, interval=20.0, vertices=12, tie_grid=4,
+                                            n_check=4), progress=False, write_scans=True)
+    v = Viewer(tmp_path / "demo" / "session", cache=tmp_path / "c")
+    try:
+        st = v.state()
+        assert st["mode"] == "contour" and st["features"] >= 1
+        w, h = v.pyramids["left"].width, v.pyramids["left"].height
+        assert 0 <= st["left_px"][0] < w and 0 <= st["left_px"][1] < h
+        f = v.feature_pixels()[0]
+        XYZ = np.asarray(v.plotter.features[0].vertices, float)[:1]
+        for side, photo in (("left", v.plotter.model.left), ("right", v.plotter.model.right)):
+            instr = photo.photo_to_film(photo.project(XYZ))
+            px = v.maps[side].frame.to_pixel(instr)[0]
+            assert np.abs(np.array(f[side][0]) - px).max() < 1e-3
+    finally:
+        v.close()

@@ -96,6 +96,7 @@ function setZoom(z) {
   app.zoom = Math.min(8, Math.max(Math.min(fit, 1) * 0.5, Number(z) || 1));
   app.dirty = true;
   panel.sync();
+  if (api.lastReply) panel.status(api.lastReply);
 }
 
 function setWindow(lo, hi) {
