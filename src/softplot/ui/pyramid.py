@@ -74,7 +74,7 @@ def _grey_level0(scan, out: Path) -> np.ndarray:
         if scan.min_is_white:
             b = full - b.astype(np.int64)
         a[r0:r0 + BAND] = b
-    a.flush()
+    del a
     return np.load(out, mmap_mode="r")
 
 
@@ -91,8 +91,7 @@ def _halve(src: np.ndarray, out: Path) -> np.ndarray:
             b = np.hstack([b, b[:, -1:]])
         a[r0 // 2:r0 // 2 + b.shape[0] // 2] = cv2.resize(
             b, (b.shape[1] // 2, b.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    a.flush()
-    del a
+    del a  # no msync: the page cache writes it back; a crash leaves no pyramid.json
     return np.load(out, mmap_mode="r")
 
 

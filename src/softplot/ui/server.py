@@ -128,7 +128,7 @@ def make_app(viewer, token: str, port_ref: dict):
     """The ASGI app of ``viewer`` (a :class:`softplot.ui.viewer.Viewer`) guarded by
     ``token``; ``port_ref["port"]`` is the port the page is served on (Host checks)."""
 
-    def page(request):
+    async def page(request):
         body = STATIC["index.html"][0]
         r = HTMLResponse(body, headers=_SECURITY_HEADERS)
         q = request.query_params.get("token")
@@ -137,26 +137,26 @@ def make_app(viewer, token: str, port_ref: dict):
                          samesite="strict", path="/")
         return r
 
-    def static(request):
+    async def static(request):
         item = STATIC.get(request.path_params["name"])
         if item is None:
             return PlainTextResponse("404 not found", status_code=404)
         return Response(item[0], media_type=item[1], headers=_SECURITY_HEADERS)
 
-    def info(request):
+    async def info(request):
         return JSONResponse(viewer.info(), headers={"Cache-Control": "no-store"})
 
-    def state(request):
+    async def state(request):
         with viewer.lock:
             st = viewer.state()
         return JSONResponse(st, headers={"Cache-Control": "no-store"})
 
-    def features(request):
+    async def features(request):
         with viewer.lock:
             f = viewer.feature_pixels()
         return JSONResponse(f, headers={"Cache-Control": "no-store"})
 
-    def tile(request):
+    async def tile(request):
         pp = request.path_params
         eye = pp["eye"]
         if eye not in (0, 1):

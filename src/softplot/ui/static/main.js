@@ -63,6 +63,8 @@ const api = {
   canvasSize: () => [app.renderer.canvas.width, app.renderer.canvas.height],
   latencies: () => app.latencies.slice(),
   clearLatencies() { app.latencies = []; },
+  // latencies end when the GPU has finished the frame (gl.finish), not when it was queued
+  setLatencySync(b) { app.finish = !!b; },
   measure: (side, name, x, y) => send({ op: 'measure', side, name, x, y }),
   unmeasure: (side, name) => send({ op: 'unmeasure', side, name }),
   refine: (name) => send({ op: 'refine', name }),
@@ -139,6 +141,7 @@ function frame() {
   const complete = app.renderer.draw(app.st, app.zoom, app.view, app.swap,
     { mark: app.mark, features: app.features });
   app.frames++;
+  if (app.finish) app.renderer.gl.finish();  // count the GPU's work in the latency too
   const now = performance.now();
   // input-to-frame latency: carriage message out, state back, this frame drawn
   for (const [seq, t0] of app.sentAt) {
