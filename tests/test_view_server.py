@@ -300,3 +300,28 @@ def test_the_demo_session_opens_in_the_viewer(tmp_path):
             assert np.abs(np.array(f[side][0]) - px).max() < 1e-3
     finally:
         v.close()
+
+
+def test_an_instrument_behind_the_viewer_shows_where_it_is(tmp_path):
+    """--motors grbl:PORT: the plotter drives the GRBL controller (simulated on a pty); the
+    state shows the carriage the controller reports, which after the move puts the mark on
+    the driven point's image (within 0.05 px)."""
+    from softplot.motors.simulator import GrblSimulator
+    from view_helpers import truth_px
+
+    t = make_session(tmp_path, size=301, left_offset=(44.0, -0.3))
+    with GrblSimulator(time_scale=50) as sim:
+        v = Viewer(t["folder"], motors=f"grbl:{sim.path}", cache=tmp_path / "c")
+        try:
+            P = t["points"][1]
+            v.handle({"op": "drive", "X": P[0], "Y": P[1], "Z": P[2]})
+            target = v.motors.target()
+            assert v.motors.wait(10)
+            st = v.state()
+            assert np.allclose([st["DX"], st["DY"]], target, atol=1e-9)
+            assert np.abs(np.array(st["left_px"]) - truth_px(t["model"], t["frame"], "left",
+                                                             P)[0]).max() < 0.05
+            assert np.abs(np.array(st["right_px"]) - truth_px(t["model"], t["frame"], "right",
+                                                              P)[0]).max() < 0.05
+        finally:
+            v.close()

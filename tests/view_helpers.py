@@ -60,7 +60,7 @@ def truth_px(model, frame, side: str, XYZ) -> np.ndarray:
 
 def make_session(folder: Path, *, size: int = 1025, pixel_mm: float = 0.2,
                  dtype=np.uint8, points=POINTS, mode: str = "single",
-                 height: float | None = None) -> dict:
+                 height: float | None = None, left_offset=(0.0, 0.0)) -> dict:
     """Write the two scans and the session in ``folder``; returns the truth."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -78,6 +78,7 @@ def make_session(folder: Path, *, size: int = 1025, pixel_mm: float = 0.2,
             img = img.astype(np.uint16) * 257
         tifffile.imwrite(paths[side], img, resolution=(25.4 / pixel_mm, 25.4 / pixel_mm),
                          resolutionunit="INCH")
-    Session.create(folder / "session", model, mode=mode, height=height).close()
+    Session.create(folder / "session", model, mode=mode, height=height,
+                   left_offset=left_offset).close()
     return {"folder": folder / "session", "model": model, "frame": frame, "dots": dots,
             "points": np.asarray(points, float), "paths": paths, "maps": maps}
