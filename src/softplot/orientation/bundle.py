@@ -783,6 +783,10 @@ class BundleResult:
         wmax = np.zeros(n_groups)
         np.maximum.at(wmax, key, aw)
         rsum = np.bincount(key, np.nansum(self.redundancy_numbers, axis=1), n_groups)
+        # not computed (covariance limited to the interior orientation): null
+        known = np.bincount(key, np.isfinite(self.redundancy_numbers).any(axis=1), n_groups)
+        wmax[known == 0] = np.nan
+        rsum[known == 0] = np.nan
         return {
             "n": n,
             "rms_x_um": sx,

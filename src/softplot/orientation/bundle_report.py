@@ -115,7 +115,10 @@ def text_report(
         sds = [*res.eo_std[f, :3], *angs[f]]
         L.append(
             f"  {n:<12}"
-            + "".join(f"{v:>13.4f} +-{s:<7.2g}" for v, s in zip(vals, sds, strict=True))
+            + "".join(
+                f"{v:>13.4f} +-{s:<7.2g}" if np.isfinite(s) else f"{v:>13.4f}   {'-':<7}"
+                for v, s in zip(vals, sds, strict=True)
+            )
         )
     L.append("")
     L.append("Image residuals per photo (RMS; max |w|; flagged; sum of redundancy numbers)")
@@ -142,7 +145,12 @@ def text_report(
     for p in range(min(max_points, len(d.point_names))):
         L.append(
             f"  {d.point_names[p]:<10} "
-            + "".join(f"{res.XYZ[p, a]:>14.4f} +-{std[p, a]:<8.2g}" for a in range(3))
+            + "".join(
+                f"{res.XYZ[p, a]:>14.4f} +-{std[p, a]:<8.2g}"
+                if np.isfinite(std[p, a])
+                else f"{res.XYZ[p, a]:>14.4f}   {'-':<8}"
+                for a in range(3)
+            )
         )
     if len(d.point_names) > max_points:
         L.append(f"  ... {len(d.point_names) - max_points} more in the JSON output")
