@@ -203,6 +203,10 @@ def test_partial_frames_show_at_least_3x3_crosses(cond):
         rows = {r for r, _ in vis}
         cols = {c for _, c in vis}
         assert len(rows) >= 3 and len(cols) >= 3, (s, case.describe())
+        # an edge of the frame on each axis: the first or the last row and col are shown
+        nr = max(m["row"] for m in truth["marks"]) + 1
+        nc = max(m["col"] for m in truth["marks"]) + 1
+        assert {0, nr - 1} & rows and {0, nc - 1} & cols, (s, case.describe())
         if cond != "crop":
             assert len(vis) < len(truth["marks"])
 

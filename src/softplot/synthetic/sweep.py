@@ -10,7 +10,8 @@ switched on at random, with ranges wider than the renderer's defaults:
   0.5-2.5 px, 8/16 bit, RGB, JPEG quality 40-95 and small web copies (about 1000 px across,
   JPEG 40-75: rendered at the copy's resolution, i.e. an exact low-resolution scan);
 * frames: crops through any row or column, half and quarter frames (always at least 3 x 3
-  crosses wholly inside the scan);
+  crosses wholly inside the scan, and on each axis at least one edge of the frame: a part of
+  a lattice without any frame edge has no row/col to find);
 * film: negatives, orange-masked colour negatives, low contrast, dust, scratches, busy
   scenes, one-armed crosses, a larger centre cross, flat dark regions over whole rows
   (crosses there have no contrast: invisible).
@@ -186,8 +187,9 @@ def make_case(seed: int, camera: str | None = None) -> Case:
     lo_keep, hi_keep = -half_span.copy(), half_span.copy()  # film region kept (x, y)
 
     def keep_block(k: np.ndarray):
-        """Keep a block of k (cols, rows) crosses at a random place."""
-        start = np.array([rng.integers(0, n[a] - k[a] + 1) for a in range(2)])
+        """Keep a block of k (cols, rows) crosses reaching the frame's edge on at least one
+        side of each axis (without a frame edge a part of a lattice has no row/col)."""
+        start = np.array([0 if rng.uniform() < 0.5 else n[a] - k[a] for a in range(2)])
         lo = -half_span + start * pitch - 0.5 * pitch
         hi = -half_span + (start + k - 1) * pitch + 0.5 * pitch
         return lo, hi
@@ -199,15 +201,14 @@ def make_case(seed: int, camera: str | None = None) -> Case:
         lo_keep, hi_keep = keep_block(k)
     elif on["quarter-frame"]:
         lo_keep, hi_keep = keep_block(np.maximum(3, (n + 1) // 2))
-    elif on["crop"]:  # cut through random rows / cols on 1-4 sides
+    elif on["crop"]:  # cut through random rows / cols on one side of each axis or none
         for a in range(2):
-            for side in (0, 1):
-                if rng.uniform() < 0.6 and n[a] >= 5:
-                    cut = rng.uniform(0.0, 0.35) * (n[a] - 1) * pitch[a]
-                    if side == 0:
-                        lo_keep[a] = -half_span[a] + cut
-                    else:
-                        hi_keep[a] = half_span[a] - cut
+            if rng.uniform() < 0.75 and n[a] >= 5:
+                cut = rng.uniform(0.0, 0.6) * (n[a] - 1) * pitch[a]
+                if rng.uniform() < 0.5:
+                    lo_keep[a] = -half_span[a] + cut
+                else:
+                    hi_keep[a] = half_span[a] - cut
     # a pixel budget: large formats at high dpi are swept as a part of the frame
     area_px = lambda lo, hi: np.prod((hi - lo + 2 * (arm_mm + 2)) * ppm)  # noqa: E731
     tries = 0
