@@ -129,3 +129,31 @@ def test_forward_is_the_default_for_self_calibration(tmp_path):
     e = read_project(tmp_path / "p")
     apply_free(e, ("c", "k1"))
     assert e.cameras[0].model == "inverse"  # as the file says
+
+
+def test_mixed_lens_models_in_one_block():
+    """Two physical cameras, one forward and one inverse: each photo's residuals and
+    Jacobians are those of its own camera's model."""
+    import dataclasses
+
+    net = make_testfield(n_photos=6, seed=3)
+    d = _data(net, "forward", STRONG)
+    d.xy += np.random.default_rng(0).normal(0, 0.01, d.xy.shape)
+    inv = dataclasses.replace(d.cameras[0], name="inv", model="inverse")
+    d.cameras.append(inv)
+    d.photo_camera[1::2] = 1
+    M = rotation_matrix(d.angles[:, 0], d.angles[:, 1], d.angles[:, 2])
+    P = len(d.point_names)
+    intr = np.array([STRONG, STRONG])
+    ev = _Model(d, np.ones((P, 3), bool)).evaluate(_State(d.X0, M, intr, d.XYZ), True)
+    for cam, model in ((0, "forward"), (1, "inverse")):
+        e = dataclasses.replace(
+            d,
+            cameras=[dataclasses.replace(d.cameras[0], model=model)],
+            photo_camera=np.zeros(len(d.photo_names), int),
+        )
+        one = _Model(e, np.ones((P, 3), bool)).evaluate(_State(d.X0, M, STRONG[None], d.XYZ), True)
+        o = d.photo_camera[d.obs_photo] == cam
+        np.testing.assert_allclose(ev.r[o], one.r[o], rtol=1e-13, atol=1e-12)
+        np.testing.assert_allclose(ev.Jp[o], one.Jp[o], rtol=1e-13, atol=1e-12)
+        np.testing.assert_allclose(ev.Jc[o], one.Jc[o], rtol=1e-13, atol=1e-9)
