@@ -11,6 +11,8 @@ Usage::
     .venv/bin/python tools/sweep_detect.py --full --table sweep.md --failures failures.md
     .venv/bin/python tools/sweep_detect.py --n 40            # a quick sample
     .venv/bin/python tools/sweep_detect.py --seeds 17,230    # rerun given cases
+    .venv/bin/python tools/sweep_detect.py --condition busy --n 10 --save cases/
+                                           # 10 renders that have a condition, files kept
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ def main(argv=None) -> int:
     ap.add_argument("--start", type=int, default=0, help="first seed")
     ap.add_argument("--seeds", help="comma-separated seeds to run instead")
     ap.add_argument("--layout", help="force one layout (a built-in certificate name)")
+    ap.add_argument("--condition", help="only renders that have this condition (the first "
+                    "--n seeds from --start that have it)")
+    ap.add_argument("--save", type=Path, help="write each render as stored (TIFF, or JPEG "
+                    "as the case says) and its truth JSON into this folder")
     ap.add_argument("--table", type=Path, help="write the markdown table here")
     ap.add_argument("--failures", type=Path, help="write the failing cases here (markdown)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON line per case here")
@@ -50,6 +56,16 @@ def main(argv=None) -> int:
 
     if a.seeds:
         seeds = [int(s) for s in a.seeds.split(",") if s.strip()]
+    elif a.condition:
+        from softplot.synthetic.sweep import CONDITIONS
+
+        if a.condition not in CONDITIONS and not a.condition.startswith("layout:"):
+            ap.error(f"--condition: one of {', '.join(CONDITIONS)} or layout:NAME")
+        seeds, s = [], a.start
+        while len(seeds) < (FULL if a.full else a.n) and s < a.start + 100_000:
+            if a.condition in make_case(s, a.layout).conditions:
+                seeds.append(s)
+            s += 1
     else:
         seeds = list(range(a.start, a.start + (FULL if a.full else a.n)))
     results, failures = [], []
@@ -57,6 +73,8 @@ def main(argv=None) -> int:
     for k, seed in enumerate(seeds):
         case = make_case(seed, a.layout)
         t1 = time.perf_counter()
+        if a.save:
+            _save(a.save, case)
         sc, det = run_case(case)
         bad = failure_lines(case, sc)
         results.append((case, sc))
@@ -85,6 +103,23 @@ def main(argv=None) -> int:
         print(f"  {k}: misses {'; '.join(v)}")
     _write(a, agg, failures, len(seeds), seeds)
     return 0
+
+
+def _save(folder: Path, case) -> None:
+    """The render of ``case`` as stored and its truth, ``sweep-<seed>.tif|jpg`` + JSON."""
+    from softplot.synthetic import render_scan
+    from softplot.synthetic.files import write_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    img, truth = render_scan(case.camera, case.spec, case.seed)
+    ext = "jpg" if case.jpeg else "tif"
+    path = folder / f"sweep-{case.seed:04d}.{ext}"
+    write_image(path, img, case.spec.dpi, ext, overwrite=True, jpeg_quality=case.jpeg or 92)
+    truth["image"] = path.name
+    truth["sweep_case"] = {"seed": case.seed, "rotate": case.rotate, "jpeg": case.jpeg,
+                           "conditions": list(case.conditions)}
+    (folder / f"sweep-{case.seed:04d}.truth.json").write_text(json.dumps(truth, indent=1),
+                                                             encoding="utf-8")
 
 
 def _write(a, agg, failures, done, seeds) -> None:
