@@ -78,3 +78,22 @@ def test_interior_covariance_equals_the_full_one_without_forming_it(block):
     assert any("covariance limited" in w for w in sel.warnings)
     # 'auto' keeps everything for a block of this size
     assert bundle_adjust(d).redundancy_numbers[0, 0] == pytest.approx(full.redundancy_numbers[0, 0])
+
+
+def test_band_solver_without_border_matches_dense_on_bal():
+    """BAL cameras share no unknowns (no border): the band path gives the dense result."""
+    from softplot.adjust.bal import BALModel
+    from softplot.adjust.sparse_bundle import LMOptions, levenberg_marquardt
+    from test_bundle_engine import synthetic_bal
+
+    prob, _ = synthetic_bal(n_cam=12, n_pts=150, seed=4)
+    start = (prob.cameras.copy(), prob.points.copy())
+    opt = LMOptions(function_tolerance=1e-12, max_iterations=50)
+    dense = levenberg_marquardt(BALModel(prob), start, opt)
+    m = BALModel(prob, dense_limit=10)
+    m.structure.dense = False
+    m.structure.band = m.structure._band_plan()
+    assert m.structure.band is not None and m.structure.band["n_inner"] == 9 * 12
+    band = levenberg_marquardt(m, start, opt)
+    assert band.cost == pytest.approx(dense.cost, rel=1e-9)
+    np.testing.assert_allclose(band.state[1], dense.state[1], atol=1e-7)
