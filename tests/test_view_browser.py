@@ -144,6 +144,12 @@ def test_at_zoom_1_the_centre_pixel_shows_the_scan_pixel_under_the_mark(env):
         exp = pat[r - 2:r + 3, c - 2:c + 3]
         assert a[2, 2, 0] == a[2, 2, 1] == exp[2, 2], view  # the mark's pixel: the image
         assert np.array_equal(a[..., 1][ok], exp[ok]), view
+    # the window: grey values lo..hi stretched to black..white (a lookup table per tile)
+    js(page, "softplot.setView('mono-right').then(() => softplot.setWindow(50, 150))")
+    a = grab(page, CX - 2, CY - 2, 5, 5)[..., 1].astype(float)
+    js(page, "softplot.setWindow(0, 255)")
+    want = np.clip(np.rint((pat[698:703, 298:303].astype(float) - 50) * 2.55), 0, 255)
+    assert np.abs(a - want).max() <= 1
     # side by side: each half's centre shows its eye (crossed: swapped)
     ew = W // 2 if (W // 2) % 2 else W // 2 - 1
     for view, (left_half, right_half) in (("sbs-parallel", ((310, 695), (300, 700))),
@@ -272,8 +278,26 @@ def test_plotting_from_the_page_records_features_drawn_at_their_image_positions(
         assert abs(xx.mean() + x0 - sx) < 1.0 and abs(yy.mean() + y0 - sy) < 1.0, side
 
 
-def test_keys_and_wheel_drive_the_plotter(env):
+def test_mouse_keys_and_wheel_drive_the_plotter(env):
     page = env["page"]
+    # pointer-locked mouse: the main carriage, mouse px / zoom * pixel_mm (y up)
+    js(page, "softplot.setMode('single').then(() => softplot.setView('anaglyph-dubois'))"
+             ".then(() => softplot.setZoom(2))")
+    s0 = js(page, "softplot.state()")
+    page.mouse.move(100, 300)
+    page.mouse.click(100, 300)
+    wait(page, "document.pointerLockElement !== null")
+    for k in range(1, 21):  # 20 quick moves: none may be lost while answers are in flight
+        page.mouse.move(100 + 5 * k, 300 + k)
+    try:
+        wait(page, f"Math.abs(softplot.state().X - {s0['X'] + 10.0}) < 1e-9 && "
+                   f"Math.abs(softplot.state().Y - {s0['Y'] - 2.0}) < 1e-9")
+    finally:
+        s1 = js(page, "softplot.state()")
+        js(page, "document.exitPointerLock()")
+    assert s1["X"] - s0["X"] == pytest.approx(10.0, abs=1e-9), (s0, s1)
+    assert s1["px"] == pytest.approx(s0["px"], abs=1e-6)  # the handwheel stays
+    wait(page, "document.pointerLockElement === null")
     js(page, "softplot.setMode('contour', 5).then(() => softplot.setView('anaglyph-dubois'))")
     page.mouse.move(200, 300)
     for _ in range(3):

@@ -69,9 +69,13 @@ export class Panel {
     this.act({ op: 'mode', mode, height: h });
   }
 
+  // the carriage being commanded: the last one sent while messages are in flight (their
+  // answers are not back yet), else the plotter's state
   target() {
-    const st = this.app.st;
-    if (!this.move) this.move = { X: st.X, Y: st.Y, DX: st.DX, DY: st.DY, px: st.px, height: st.height };
+    if (!this.move) {
+      const st = this.inflight > 0 && this.sent ? this.sent : this.app.st;
+      this.move = { X: st.X, Y: st.Y, DX: st.DX, DY: st.DY, px: st.px, height: st.height };
+    }
     return this.move;
   }
 
@@ -101,6 +105,7 @@ export class Panel {
     const t = this.move;
     if (!t || this.inflight >= 2) return;
     this.move = null;
+    this.sent = { X: t.X, Y: t.Y, DX: t.DX, DY: t.DY, px: t.px, height: t.height };
     const done = () => { this.inflight--; };
     const go = msg => { this.inflight++; this.fn.send(msg).then(done, err => { done(); $('message').textContent = String(err.message || err); }); };
     if (t.dz) go({ op: 'height', height: t.height });
