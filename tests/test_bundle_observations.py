@@ -161,3 +161,26 @@ def test_interior_orientation_from_a_detection_json_alone(tmp_path, capsys):
         ["correct", dj, "--camera", cam.name, "--resample", tmp_path / "x.tif"], capsys
     )
     assert code == 2 and "needs the scan" in se
+
+
+def test_redundancy_numbers_and_w_with_correlated_observations():
+    """Redundancy numbers diag(Qvv P) sum to the redundancy; Baarda's w with the full weight
+    matrix finds a blunder along the direction the covariance makes unlikely."""
+    net = make_testfield(n_photos=10, noise_um=0.0, control_sigma_m=0.0, seed=6)
+    rng = np.random.default_rng(2)
+    n = net.xy_true.shape[0]
+    sx = np.full(n, 0.002)
+    sy = np.full(n, 0.002)
+    sxy = 0.95 * sx * sy  # errors along the (1, 1) diagonal; (1, -1) is 6x more precise
+    d = net.to_bundle_data(free=FREE)
+    d.xy = _noisy(net, sx, sy, sxy, rng)
+    d.xy[7] += np.array([1.0, -1.0]) * 0.0025  # a blunder across the error ellipse
+    d.sigma_xy = np.column_stack([sx, sy])
+    d.cov_xy = sxy
+    res = bundle_adjust(d)
+    r = res.redundancy_numbers
+    assert np.all((r > 0) & (r < 1))
+    assert r.sum() == pytest.approx(res.redundancy, rel=1e-9)
+    wmax = np.nanmax(np.abs(res.w), axis=1)
+    assert int(np.argmax(wmax)) == 7 and res.flagged[7]
+    assert res.flagged.sum() <= 3

@@ -1135,10 +1135,23 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
                         )
         XYZ_cov = var * Qpp
         q = inv.observation_blocks()
-        qvv = 1.0 - np.einsum("mii->mi", q)
-        rnum = qvv
+        if model.wh is None:
+            qvv = 1.0 - np.einsum("mii->mi", q)
+            rnum = qvv
+            num = ev.r
+        else:
+            # correlated observations (Sigma = L L', whitening L^-1): redundancy numbers
+            # diag(Qvv P) = diag(L (I - q) L^-1); Baarda's w_i = (P v)_i / sqrt((P Qvv P)_ii)
+            # with P v = L^-T r and P Qvv P = L^-T (I - q) L^-1
+            Rw = np.eye(2) - q
+            Wh = model.wh
+            Lm = np.linalg.inv(Wh)
+            rnum = np.einsum("mii->mi", Lm @ Rw @ Wh)
+            num = np.einsum("mji,mj->mi", Wh, ev.r)
+            qvv = np.einsum("mii->mi", Wh.transpose(0, 2, 1) @ Rw @ Wh)
         with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(qvv > 1e-8, ev.r / np.sqrt(np.clip(qvv, 1e-300, None)), np.nan)
+            ok = (rnum > 1e-8) & (qvv > 0)
+            w = np.where(ok, num / np.sqrt(np.clip(qvv, 1e-300, None)), np.nan)
     flagged = np.nan_to_num(np.abs(w), nan=0.0).max(axis=1) > crit
     if flagged.any():
         warnings.append(
