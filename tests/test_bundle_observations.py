@@ -184,3 +184,35 @@ def test_redundancy_numbers_and_w_with_correlated_observations():
     wmax = np.nanmax(np.abs(res.w), axis=1)
     assert int(np.argmax(wmax)) == 7 and res.flagged[7]
     assert res.flagged.sum() <= 3
+
+
+def test_w_and_redundancy_numbers_match_dense_generalised_formulas():
+    """Against full matrices: Qvv = Sigma - A Q A', r = diag(Qvv P), w = Pv / sqrt(diag(P Qvv P))."""
+    import scipy.linalg
+
+    from test_bundle_engine import dense_system
+
+    net = make_testfield(n_photos=5, noise_um=0.0, control_sigma_m=0.0, seed=8)
+    rng = np.random.default_rng(3)
+    sx, sy, sxy = _correlated(net.xy_true.shape[0], rng)
+    d = net.to_bundle_data(free=FREE)
+    d.xy = _noisy(net, sx, sy, sxy, rng)
+    d.sigma_xy = np.column_stack([sx, sy])
+    d.cov_xy = sxy
+    res = bundle_adjust(d)
+    it = res._internals
+    J, _, ev = dense_system(it["model"], it["state"])
+    st = it["model"].structure
+    free = np.concatenate([np.ones(st.n_cam, bool), st.point_free.ravel()])
+    A = J[: 2 * d.obs_photo.size][:, free]  # whitened design matrix
+    Sigma = scipy.linalg.block_diag(*[[[a * a, c], [c, b * b]] for a, b, c in zip(sx, sy, sxy)])
+    L = np.linalg.cholesky(Sigma)
+    Au = L @ A  # unwhitened (mm per unknown)
+    P = np.linalg.inv(Sigma)
+    Q = np.linalg.inv(Au.T @ P @ Au)
+    Qvv = Sigma - Au @ Q @ Au.T
+    v = res.residuals_mm.ravel()
+    r = np.diag(Qvv @ P)
+    w = (P @ v) / np.sqrt(np.diag(P @ Qvv @ P))
+    np.testing.assert_allclose(res.redundancy_numbers.ravel(), r, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(res.w.ravel(), w, rtol=1e-5, atol=1e-6)
