@@ -187,7 +187,8 @@ def test_redundancy_numbers_and_w_with_correlated_observations():
 
 
 def test_w_and_redundancy_numbers_match_dense_generalised_formulas():
-    """Against full matrices: Qvv = Sigma - A Q A', r = diag(Qvv P), w = Pv / sqrt(diag(P Qvv P))."""
+    """Against full matrices: Qvv = Sigma - A Q A', r = diag(Qvv P),
+    w = P v / sqrt(diag(P Qvv P))."""
     import scipy.linalg
 
     from test_bundle_engine import dense_system
@@ -205,7 +206,9 @@ def test_w_and_redundancy_numbers_match_dense_generalised_formulas():
     st = it["model"].structure
     free = np.concatenate([np.ones(st.n_cam, bool), st.point_free.ravel()])
     A = J[: 2 * d.obs_photo.size][:, free]  # whitened design matrix
-    Sigma = scipy.linalg.block_diag(*[[[a * a, c], [c, b * b]] for a, b, c in zip(sx, sy, sxy)])
+    Sigma = scipy.linalg.block_diag(
+        *[[[a * a, c], [c, b * b]] for a, b, c in zip(sx, sy, sxy, strict=True)]
+    )
     L = np.linalg.cholesky(Sigma)
     Au = L @ A  # unwhitened (mm per unknown)
     P = np.linalg.inv(Sigma)
