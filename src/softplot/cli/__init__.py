@@ -40,6 +40,7 @@ COMMANDS = [
     "import_",
     "export",
     "view",
+    "match",
 ]
 
 

@@ -25,7 +25,7 @@ from softplot.errors import SoftplotError
 from softplot.geometry.collinearity import project
 from softplot.geometry.rotation import rotation_matrix
 
-__all__ = ["SyntheticPair", "aerial_pair"]
+__all__ = ["SyntheticPair", "TexturedTerrain", "aerial_pair", "rollei_pair"]
 
 
 @dataclass
@@ -173,3 +173,162 @@ def aerial_pair(
         else:
             D[k, :, :2] = np.eye(2)
     return SyntheticPair(X0, angles, cc, x0, y0, (Xc, Yc, Z0, hill_height, 0.12 * width), D, half)
+
+
+class TexturedTerrain:
+    """Ground of a :class:`SyntheticPair` with a fractal texture, seen by one photo.
+
+    A picklable scene callable for :func:`softplot.synthetic.render_scan`:
+    ``__call__(x_mm, y_mm)`` takes undeformed (certificate) film mm and returns the
+    reflectance in [0, 1] of the first surface the ray meets - exact per pixel (no raster of
+    the geometry): film mm -> photo mm (``interior.film_to_photo``) -> ray (the true exterior
+    orientation) -> the surface, which is the Gaussian hill plus, optionally, a flat-roofed
+    box (a building whose walls occlude the ground behind them).
+
+    The texture is fractal noise on an object-space raster of ``pitch`` m (bilinear), mean
+    0.5 and standard deviation ``0.15 * contrast``; inside ``blank`` (X0, X1, Y0, Y1, object m)
+    the ground is uniform (0.5): nothing there to match.
+
+    Parameters
+    ----------
+    pair : SyntheticPair
+    k : int
+        Photo index (0 left, 1 right).
+    interior : object with ``film_to_photo((N, 2)) -> (N, 2)`` (mm)
+    seed : int
+        Texture seed (the same for both photos of a pair: it is the ground's).
+    pitch : float
+        Texture raster pitch, object m.
+    box : (X0, X1, Y0, Y1, Ztop) or None
+        A building: vertical walls over the rectangle, flat roof at Ztop (object m).
+    blank : (X0, X1, Y0, Y1) or None
+        A uniform area of the ground.
+    """
+
+    def __init__(self, pair: SyntheticPair, k: int, interior, *, seed: int = 0,
+                 pitch: float = 0.1, contrast: float = 2.0, box=None, blank=None):
+        self.pair, self.k, self.io = pair, int(k), interior
+        self.box = None if box is None else tuple(float(v) for v in box)
+        self.blank = None if blank is None else tuple(float(v) for v in blank)
+        self.pitch = float(pitch)
+        self.contrast = float(contrast)
+        self.seed = int(seed)
+        Xc, Yc = pair.hill[:2]
+        half = 0.75 * pair.ground_width + 0.6 * abs(pair.X0[1, 0] - pair.X0[0, 0])
+        self.origin = (Xc - half, Yc - half)
+        self.n = int(np.ceil(2 * half / self.pitch)) + 2
+        self._raster = None
+
+    def _tex(self) -> np.ndarray:
+        if self._raster is None:
+            from softplot.synthetic.scene import _fractal
+
+            rng = np.random.default_rng(self.seed + 4242)
+            cells = max(8, int(self.n * self.pitch / 0.5))
+            octaves = tuple(c for c in (cells // 64, cells // 32, cells // 16, cells // 8,
+                                        cells // 4, cells // 2, cells) if c >= 2)
+            t = _fractal((self.n, self.n), rng, octaves)
+            self._raster = np.clip(0.5 + 0.15 * self.contrast * t, 0.02, 0.98).astype(np.float32)
+        return self._raster
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["_raster"] = None
+        return d
+
+    # -- geometry ---------------------------------------------------------------------
+
+    def surface(self, X, Y) -> np.ndarray:
+        """Height of the visible top surface (hill, or the roof over the box), object m."""
+        Z = self.pair.terrain(X, Y)
+        if self.box is not None:
+            x0, x1, y0, y1, zt = self.box
+            X, Y = np.asarray(X), np.asarray(Y)
+            inside = (X >= x0) & (X <= x1) & (Y >= y0) & (Y <= y1)
+            Z = np.where(inside, np.maximum(Z, zt), Z)
+        return Z
+
+    def rays(self, xy_photo) -> tuple[np.ndarray, np.ndarray]:
+        """Projection centre (3,) and ray directions (N, 3) of photo mm points."""
+        p = self.pair
+        xy = np.asarray(xy_photo, float).reshape(-1, 2)
+        v = np.column_stack([xy[:, 0] - p.x0[self.k], xy[:, 1] - p.y0[self.k],
+                             np.full(len(xy), -p.c[self.k])])
+        return p.X0[self.k], v @ p.M(self.k)
+
+    def intersect(self, xy_photo) -> np.ndarray:
+        """First surface point (N, 3) of the rays of photo mm points, object m."""
+        C, r = self.rays(xy_photo)
+        Xc, Yc, Z0, A, s = self.pair.hill
+        t = (Z0 + 0.5 * A - C[2]) / r[:, 2]
+        for _ in range(7):
+            X = C[0] + t * r[:, 0]
+            Y = C[1] + t * r[:, 1]
+            e = A * np.exp(-((X - Xc) ** 2 + (Y - Yc) ** 2) / (2 * s * s))
+            h = C[2] + t * r[:, 2] - (Z0 + e)
+            dh = r[:, 2] + ((X - Xc) * r[:, 0] + (Y - Yc) * r[:, 1]) / (s * s) * e
+            t = t - h / dh
+        if self.box is not None:
+            x0, x1, y0, y1, zt = self.box
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tlo = np.full(len(t), -np.inf)
+                thi = np.full(len(t), np.inf)
+                for lo, hi, o, d in ((x0, x1, C[0], r[:, 0]), (y0, y1, C[1], r[:, 1]),
+                                     (-1e9, zt, C[2], r[:, 2])):
+                    a = (lo - o) / d
+                    b = (hi - o) / d
+                    tlo = np.maximum(tlo, np.minimum(a, b))
+                    thi = np.minimum(thi, np.maximum(a, b))
+            hit = (tlo <= thi) & (tlo > 0) & (tlo < t)
+            t = np.where(hit, tlo, t)
+        return C + t[:, None] * r
+
+    def visible(self, XYZ, tol: float = 0.05) -> np.ndarray:
+        """True where the object point (N, 3) is the first surface along this photo's ray."""
+        XYZ = np.asarray(XYZ, float).reshape(-1, 3)
+        P = self.intersect(self.pair.photo(self.k, XYZ))
+        return np.linalg.norm(P - XYZ, axis=1) < tol
+
+    # -- texture ----------------------------------------------------------------------
+
+    def texture(self, XYZ) -> np.ndarray:
+        """Reflectance (N,) of surface points (N, 3); walls take their texture by X+Z, Y+Z."""
+        import cv2
+
+        XYZ = np.asarray(XYZ, float).reshape(-1, 3)
+        X, Y, Z = XYZ.T
+        if self.box is not None:
+            wall = np.abs(Z - self.surface(X, Y)) > 1e-3
+            X = np.where(wall, X + Z, X)
+            Y = np.where(wall, Y + Z, Y)
+        n = len(X)
+        w = 1024
+        pad = (-n) % w
+        mx = ((np.r_[X, np.zeros(pad)] - self.origin[0]) / self.pitch).reshape(-1, w)
+        my = ((np.r_[Y, np.zeros(pad)] - self.origin[1]) / self.pitch).reshape(-1, w)
+        f = cv2.remap(self._tex(), mx.astype(np.float32), my.astype(np.float32),
+                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).ravel()[:n]
+        if self.blank is not None:
+            x0, x1, y0, y1 = self.blank
+            f = np.where((XYZ[:, 0] >= x0) & (XYZ[:, 0] <= x1) & (XYZ[:, 1] >= y0)
+                         & (XYZ[:, 1] <= y1), np.float32(0.5), f)
+        return f
+
+    def __call__(self, x_mm, y_mm):
+        x = np.asarray(x_mm, float)
+        shape = x.shape
+        film = np.column_stack([x.ravel(), np.asarray(y_mm, float).ravel()])
+        out = np.empty(len(film), np.float32)
+        step = 1 << 18
+        for i in range(0, len(film), step):
+            P = self.intersect(self.io.film_to_photo(film[i:i + step]))
+            out[i:i + step] = self.texture(P)
+        return out.reshape(shape)
+
+
+def rollei_pair(seed: int = 6006):
+    """The Rollei 6006 pair of ``softplot demo`` (1:7500, B/H 0.56, hill of 60 m): truth."""
+    from softplot.camera import load_camera
+    from softplot.pipeline.demo import make_pair
+
+    return make_pair(load_camera("rollei-6006"), seed)

@@ -1,0 +1,86 @@
+"""``softplot match``: automatic tie points between the two scans of a stereo pair."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from softplot.errors import SoftplotError
+
+
+def load_pair(left, right, camera, detection_left=None, detection_right=None, method="mesh"):
+    """(scans, maps): both scans and their film corrections (marks detected when no
+    detection is given). Errors (missing scan, wrong camera, ...) are one line."""
+    from softplot.camera import load_camera
+    from softplot.io import load_scan
+    from softplot.pipeline.session import scan_photo_map
+
+    cam = load_camera(camera)
+    scans, maps = [], []
+    for side, path, det in (("left", left, detection_left), ("right", right, detection_right)):
+        scan = load_scan(path)
+        try:
+            m = scan_photo_map(path, cam, det, method=method)
+        except SoftplotError as exc:
+            raise SoftplotError(f"{side} scan {path}: {exc} (is {cam.name} its camera?)") from None
+        if m.correction.image_size is None:
+            m.correction.image_size = (scan.width, scan.height)
+        scans.append(scan)
+        maps.append(m)
+    return cam, scans, maps
+
+
+def match_options(f):
+    for opt in reversed([
+        click.option("--max-ties", type=click.IntRange(1), default=600, show_default=True,
+                     help="Ties refined by least-squares matching (spread over the overlap)."),
+        click.option("--min-corr", type=click.FloatRange(0, 1), default=0.8, show_default=True,
+                     help="Least correlation coefficient of a least-squares match."),
+    ]):
+        f = opt(f)
+    return f
+
+
+@click.command("match")
+@click.argument("left", type=click.Path(path_type=Path))
+@click.argument("right", type=click.Path(path_type=Path))
+@click.option("--camera", required=True, help="Camera: built-in name or certificate (TOML).")
+@click.option("--detection-left", type=click.Path(path_type=Path),
+              help="Marks of the left scan (softplot detect JSON); detected when omitted.")
+@click.option("--detection-right", type=click.Path(path_type=Path),
+              help="Marks of the right scan (softplot detect JSON); detected when omitted.")
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Output folder: left.csv, right.csv, ties.csv, match.json.")
+@match_options
+@click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run.")
+def command(left, right, camera, detection_left, detection_right, out, max_ties, min_corr,
+            overwrite) -> None:
+    """Tie points between two scans of a stereo pair, each with its precision.
+
+    SIFT in the film-corrected images (ratio test, mutual check), five-point RANSAC on photo
+    coordinates, least-squares matching in the scans (to a fraction of a pixel, with the
+    standard deviation of every match), then the least-squares relative orientation with
+    data snooping. Writes OUT/left.csv and OUT/right.csv (name,x,y scan pixels, the same
+    names in the same order: what softplot correct --points takes), OUT/ties.csv (both
+    positions, precision sx_px, sy_px, correlation, residual y-parallax py_px) and
+    OUT/match.json (n, sigma0, rms_px - the residual y-parallax in pixels -, the ties in the
+    six Gruber areas, the relative orientation). See docs/matching.md.
+    """
+    from softplot.matching.ties import MatchOptions, check_outputs, match_pair
+
+    names = ("left.csv", "right.csv", "ties.csv", "match.json")
+    if out.exists() and not out.is_dir():
+        raise SoftplotError(f"{out}: exists and is not a folder")
+    check_outputs([out / n for n in names], overwrite)
+    cam, scans, maps = load_pair(left, right, camera, detection_left, detection_right)
+    res = match_pair(scans[0], scans[1], maps[0], maps[1],
+                     MatchOptions(max_ties=max_ties, min_corr=min_corr))
+    res.write(out, overwrite=overwrite)
+    g = res.gruber
+    click.echo(
+        f"{res.n} ties, sigma0 {res.ro.sigma0 * 1000:.2f} um, residual y-parallax RMS "
+        f"{res.rms_px:.3f} px; Gruber areas {'/'.join(map(str, g))}"
+        + ("" if min(g) > 0 else " (some Gruber areas empty)")
+    )
+    click.echo(f"wrote {out}")

@@ -1,0 +1,69 @@
+"""Synthetic textured Rollei 6006 stereo pairs with exact truth, shared by the matching tests.
+
+:func:`make_scene` renders (once per process, cached by its arguments) the two scans of the
+``softplot demo`` pair over a fractal-textured hill (optionally with a building and a blank
+area), writes them as TIFFs with their mark detections, and returns the truth: each scan's
+:class:`TruthMapping`, the interior orientation and the :class:`TexturedTerrain` of each
+photo, so that a left pixel's true right pixel is known exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from softplot.camera import load_camera
+from softplot.orientation.interior import InteriorOrientation
+from softplot.synthetic import ScanSpec, TruthMapping, render_scan
+from softplot.synthetic.files import write_image
+from softplot.synthetic.stereo import TexturedTerrain, rollei_pair
+
+CAMERA = "rollei-6006"
+
+
+@lru_cache(maxsize=4)
+def make_scene(folder: str, dpi: float = 600.0, box=None, blank=None, seed: int = 6006):
+    from softplot.io import Scan, fingerprint
+    from softplot.marks import detect
+
+    cam = load_camera(CAMERA)
+    io = InteriorOrientation(cam)
+    pair = rollei_pair(seed)
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    terr, tms, paths, dets = [], [], [], []
+    for k in range(2):
+        t = TexturedTerrain(pair, k, io, seed=seed, box=box, blank=blank)
+        spec = ScanSpec(dpi=dpi, scene=t, deform_um=12.0, shrink_ppm=150.0 + 100 * k,
+                        rotation_deg=(0.35, -0.5)[k], offset_px=((3.2, -2.1), (-4.4, 1.7))[k],
+                        noise_sigma=0.01, blur_sigma_px=0.8)
+        side = ("left", "right")[k]
+        p, dp, tp = (out / f"{side}{e}" for e in (".tif", ".detection.json", ".truth.json"))
+        if not (p.exists() and dp.exists() and tp.exists()):  # a folder of this scene only
+            image, truth = render_scan(cam, spec, seed=seed + k)
+            write_image(p, image, dpi, "tif", overwrite=True)
+            det = detect(Scan.from_array(image, dpi=dpi), cam).to_json()
+            det["scan"] = fingerprint(p)
+            dp.write_text(json.dumps(det) + "\n", encoding="utf-8")
+            tp.write_text(json.dumps(truth) + "\n", encoding="utf-8")
+        truth = json.loads(tp.read_text(encoding="utf-8"))
+        terr.append(t)
+        tms.append(TruthMapping.from_truth(truth))
+        paths.append(p)
+        dets.append(dp)
+    return SimpleNamespace(camera=cam, io=io, pair=pair, terrain=terr, mapping=tms,
+                           scans=paths, detections=dets, dpi=dpi, folder=out)
+
+
+def true_right(scene, left_px) -> tuple[np.ndarray, np.ndarray]:
+    """Exact right pixels of left pixels (N, 2), and whether the point is seen by both."""
+    film = scene.mapping[0].pixel_to_film(np.asarray(left_px, float).reshape(-1, 2))
+    photo = scene.io.film_to_photo(film)
+    P = scene.terrain[0].intersect(photo)
+    ph2 = scene.pair.photo(1, P)
+    px = scene.mapping[1].film_to_pixel(scene.io.photo_to_film(ph2))
+    return px, scene.terrain[1].visible(P)
