@@ -50,6 +50,14 @@ class Fiducial:
     dot_mm: float = 0.1
 
 
+def default_cross_size(pitch_x: float, pitch_y: float) -> tuple[float, float]:
+    """Starting guess (arm length, line width) in mm for a reseau cross whose certificate does
+    not state them: arms of 1 mm (at most a fifth of the pitch), lines of 0.05 mm (at most a
+    tenth of the arm). Detection measures the real ones on the scan."""
+    arm = min(1.0, 0.2 * min(pitch_x, pitch_y))
+    return arm, min(0.05, 0.1 * arm)
+
+
 @dataclass(frozen=True)
 class Reseau:
     """A grid of reseau crosses.
@@ -58,7 +66,10 @@ class Reseau:
     ``y = ((rows-1)/2 - row) * pitch_y`` (film mm; row 0 on top). ``calibrated``, when
     present, is a (rows, cols, 2) array of calibrated film coordinates in mm that overrides
     the nominal grid (NaN where a cross was not calibrated: the nominal value is used).
-    ``arm_length_mm`` is the tip-to-tip length of each bar of a cross.
+    ``arm_length_mm`` is the tip-to-tip length of each bar of a cross, ``line_width_mm`` its
+    stroke width: both a starting guess for detection, which measures them on the scan
+    (``sizes_stated`` False when the certificate left them out and they are the defaults of
+    :func:`default_cross_size`).
     """
 
     rows: int
@@ -68,6 +79,7 @@ class Reseau:
     arm_length_mm: float
     line_width_mm: float
     calibrated: np.ndarray | None = field(default=None, compare=False)
+    sizes_stated: tuple[bool, bool] = field(default=(True, True), compare=False)
 
     @property
     def count(self) -> int:
@@ -324,14 +336,19 @@ def _parse(data: dict, where: str) -> Camera:
                 if int(r_) != r_ or int(c_) != c_ or not (0 <= r_ < rows and 0 <= c_ < cols):
                     raise rs.fail(f"calibrated[{i}]", f"row/col ({r_}, {c_}) outside the grid")
                 cal[int(r_), int(c_)] = (e[2], e[3])
+        pitch_x = rs.number("pitch_x_mm", positive=True)
+        pitch_y = rs.number("pitch_y_mm", positive=True)
+        arm_d, width_d = default_cross_size(pitch_x, pitch_y)
+        stated = ("arm_length_mm" in rs.table, "line_width_mm" in rs.table)
         reseau = Reseau(
             rows=rows,
             cols=cols,
-            pitch_x=rs.number("pitch_x_mm", positive=True),
-            pitch_y=rs.number("pitch_y_mm", positive=True),
-            arm_length_mm=rs.number("arm_length_mm", positive=True),
-            line_width_mm=rs.number("line_width_mm", positive=True),
+            pitch_x=pitch_x,
+            pitch_y=pitch_y,
+            arm_length_mm=rs.number("arm_length_mm", arm_d, positive=True),
+            line_width_mm=rs.number("line_width_mm", width_d, positive=True),
             calibrated=cal,
+            sizes_stated=stated,
         )
         if reseau.line_width_mm >= reseau.arm_length_mm:
             raise rs.fail("line_width_mm", "must be smaller than arm_length_mm")
@@ -481,9 +498,11 @@ def to_toml(cam: Camera) -> str:
             f"cols = {r.cols}",
             f"pitch_x_mm = {_fmt(r.pitch_x)}",
             f"pitch_y_mm = {_fmt(r.pitch_y)}",
-            f"arm_length_mm = {_fmt(r.arm_length_mm)}",
-            f"line_width_mm = {_fmt(r.line_width_mm)}",
         ]
+        if r.sizes_stated[0]:
+            out.append(f"arm_length_mm = {_fmt(r.arm_length_mm)}")
+        if r.sizes_stated[1]:
+            out.append(f"line_width_mm = {_fmt(r.line_width_mm)}")
         if r.calibrated is not None:
             cal = np.asarray(r.calibrated, float)
             out.append("calibrated = [")

@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.marks import coarse, grid
+from softplot.marks.geometry import estimate_geometry
 from softplot.marks.measure import AcceptRules, measure, median_blur
 from softplot.marks.result import Detection
 from softplot.marks.template import cross_shape
@@ -380,6 +381,13 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     # affine of every cross: pixel -> mark frame (u along film x, v along film -y, nominal px)
     Jh = grid.h_jacobian(g.H, film)  # d pixel / d film mm
     A0 = np.linalg.inv(Jh @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    # the crosses' real size, measured on the ones the lattice found (the certificate's is a
+    # starting guess only)
+    prof = np.where(use)[0]
+    geom = estimate_geometry(sc.grey, c0[prof], A0[prof], shape, sign,
+                             pitch_px=min(res.pitch_x, res.pitch_y) * ppm, score=val[prof])
+    shape = geom.shape()
+    timings["geometry"] = time.perf_counter() - t0
 
     # crosses whose extent leaves the scan are cut: never fitted
     ext = 0.5 * shape.length + 0.5 * shape.width
@@ -484,6 +492,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         dpi_source=dpi_source,
         timings=timings,
         scene="joint" if tv else "opening",
+        mark_geometry=geom.to_json(ppm),
     )
 
 

@@ -15,7 +15,25 @@ import numpy as np
 from softplot.marks import grid
 from softplot.marks.result import Detection
 
-__all__ = ["plot_qc"]
+__all__ = ["plot_qc", "geometry_text"]
+
+
+def geometry_text(det: Detection) -> str:
+    """One line on the crosses' size as measured on the scan (``det.mark_geometry``)."""
+    g = det.mark_geometry or {}
+    if not g:
+        return ""
+    sp = g.get("spread") or {}
+
+    def v(key):
+        x, s = g.get(key), sp.get(key)
+        if x is None:
+            return "?"
+        return f"{x * 1000:.1f} um" + (f" +- {s * 1000:.1f}" if s is not None else "")
+
+    src = "measured on the scan" if g.get("source") == "scan" else "certificate (not measured)"
+    return (f"crosses: arm {v('arm_length_mm')}, line {v('line_width_mm')} "
+            f"({src}, {g.get('n', 0)} bars)")
 
 
 def _nice(v: float) -> float:
@@ -74,7 +92,8 @@ def plot_qc(det: Detection, scan, path: str | Path, n_chips: int = 6, dpi: int =
     ax.set_ylabel("y (px)")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(f"{det.image}: {det.camera}, {det.polarity}, {det.dpi:.0f} dpi; "
-                 f"rms {det.rms_px:.3f} px ({det.transform.get('kind', '')})", fontsize=9)
+                 f"rms {det.rms_px:.3f} px ({det.transform.get('kind', '')})"
+                 + (f"\n{geometry_text(det)}" if det.mark_geometry else ""), fontsize=9)
 
     # chips of the worst marks (largest residual, then rejected ones)
     order = np.argsort(-np.nan_to_num(mag, nan=-1.0))

@@ -73,6 +73,10 @@ class Detection:
         The scene model under the crosses: "opening" (the grey opening's estimate) or "joint"
         (also estimated jointly with each cross, :mod:`softplot.marks.scene_tv`); fiducials
         always "opening".
+    mark_geometry : dict or None
+        The reseau crosses' size as measured on the scan (film mm):
+        ``{"arm_length_mm", "line_width_mm", "spread": {...}, "n", "source"}``
+        (:class:`softplot.marks.geometry.MarkGeometry`); None for fiducial cameras.
     """
 
     image: str
@@ -100,6 +104,7 @@ class Detection:
     dpi_source: str = "given"
     timings: dict = field(default_factory=dict)
     scene: str = "opening"
+    mark_geometry: dict | None = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -157,4 +162,5 @@ class Detection:
             "rms_px": _num(self.rms_px, 5),
             "warnings": list(self.warnings),
             "counts": {s: sum(x == s for x in self.status) for s in STATUSES},
+            **({"mark_geometry": self.mark_geometry} if self.mark_geometry else {}),
         }

@@ -1,0 +1,121 @@
+"""Mark geometry from the scan: crosses whose arm length and line width differ from the
+certificate's (0.4x-2.5x, 0.5x-2x, or not stated at all) are measured as accurately as crosses
+of the stated size, and the result reports the size measured (``mark_geometry``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+
+from conftest import sweep
+from softplot.camera import load_camera, parse_certificate, to_toml
+from softplot.io import Scan
+from softplot.marks import detect
+from softplot.marks.crb import centre_crb, effective_noise
+from softplot.marks.geometry import estimate_geometry
+from softplot.marks.qc import geometry_text
+from softplot.marks.template import MarkShape, cross_shape
+from softplot.synthetic import ScanSpec, render_scan
+
+CAM = "rollei-6006"
+DPI = 1200.0
+
+
+def _without_sizes(name: str):
+    """The built-in certificate with ``arm_length_mm`` and ``line_width_mm`` left out."""
+    text = "\n".join(line for line in to_toml(load_camera(name)).splitlines()
+                     if not line.startswith(("arm_length_mm", "line_width_mm")))
+    return parse_certificate(text)
+
+
+@functools.lru_cache(maxsize=4)
+def _render(arm: float, width: float, seed: int = 3):
+    spec = ScanSpec(dpi=DPI, mark_arm_scale=arm, mark_width_scale=width, rotation_deg=0.6,
+                    scene="none", noise_sigma=0.02)
+    return render_scan(CAM, spec, seed)
+
+
+def _errors(det, truth):
+    tm = {m["name"]: m for m in truth["marks"]}
+    err, wrong, missed, claimed = [], 0, 0, 0
+    for i, name in enumerate(det.name):
+        t = tm[name]
+        if det.status[i] != "measured":
+            missed += bool(t["visible"])
+            continue
+        if not t["visible"]:
+            claimed += 1
+            continue
+        e = det.xy[i] - (t["x"], t["y"])
+        if np.hypot(*e) > 1.0:
+            wrong += 1
+        else:
+            err.append(e)
+    return np.array(err).reshape(-1, 2), wrong, missed, claimed
+
+
+CASES = [(a, w, c) for a in (0.4, 0.7, 1.6, 2.5) for w in (0.5, 1.0, 2.0)
+         for c in ("stated",)] + [(a, w, "absent") for a, w in ((0.4, 0.5), (1.0, 1.0),
+                                                                 (2.5, 2.0), (1.5, 0.7))]
+
+
+@pytest.mark.parametrize("arm,width,cert", sweep(CASES, 5))
+def test_crosses_of_any_size_are_measured_to_the_bound(arm, width, cert):
+    img, truth = _render(arm, width)
+    cam = load_camera(CAM) if cert == "stated" else _without_sizes(CAM)
+    det = detect(Scan.from_array(img, dpi=truth["dpi"]), cam)
+    err, wrong, missed, claimed = _errors(det, truth)
+    visible = sum(bool(m["visible"]) for m in truth["marks"])
+    assert wrong == 0 and claimed == 0
+    assert missed <= max(1, 0.005 * visible), (missed, visible)
+    # the bound of the crosses as drawn (their true size), flat scene
+    r = truth["render"]
+    ppm = truth["dpi"] / 25.4
+    ref = load_camera(CAM).reseau
+    true = MarkShape("cross", length=ref.arm_length_mm * arm * ppm,
+                     width=ref.line_width_mm * width * ppm)
+    crb = centre_crb(true, r["blur_sigma_px"], abs(r["contrast"]),
+                     effective_noise(r["noise_sigma"], truth.get("bit_depth")))
+    rms = float(np.sqrt(np.mean(err**2)))
+    assert rms <= 1.5 * crb, (rms, crb)
+    # the size measured on the scan
+    g = det.mark_geometry
+    assert g["source"] == "scan" and g["n"] >= 10
+    # within 5 % or a pixel (the shortest arms are 15 px)
+    assert g["arm_length_mm"] == pytest.approx(ref.arm_length_mm * arm,
+                                               abs=max(0.05 * ref.arm_length_mm * arm, 1 / ppm))
+    assert g["spread"]["arm_length_mm"] < 0.05 * ref.arm_length_mm * arm
+    if true.width >= 3.0:  # thinner lines: width and blur are not separable
+        assert g["line_width_mm"] == pytest.approx(ref.line_width_mm * width, rel=0.2)
+    assert det.to_json()["mark_geometry"] == g
+    assert "measured on the scan" in geometry_text(det)
+
+
+def test_certificate_without_sizes_is_valid_and_round_trips():
+    cam = _without_sizes(CAM)
+    assert cam.reseau.sizes_stated == (False, False)
+    assert cam.reseau.arm_length_mm == pytest.approx(0.8 * 1.25)  # 1 mm, at most pitch / 5
+    assert 0 < cam.reseau.line_width_mm < cam.reseau.arm_length_mm
+    text = to_toml(cam)
+    assert "arm_length_mm" not in text and "line_width_mm" not in text
+    assert parse_certificate(text).reseau.sizes_stated == (False, False)
+    assert load_camera(CAM).reseau.sizes_stated == (True, True)
+
+
+def test_geometry_of_profiles_without_crosses_keeps_the_guess():
+    """No cross (a flat grey): the starting guess is kept and says so."""
+    grey = np.full((400, 400), 0.5, np.float32)
+    rng = np.random.default_rng(0)
+    grey += rng.normal(0, 0.01, grey.shape).astype(np.float32)
+
+    def at(win):
+        return grey[win]
+
+    guess = cross_shape(dataclasses.replace(load_camera(CAM)), DPI / 25.4)
+    xy = np.array([[100.0, 100.0], [300.0, 100.0], [200.0, 300.0]])
+    g = estimate_geometry(at, xy, np.tile(np.eye(2), (3, 1, 1)), guess, -1, pitch_px=200.0)
+    assert g.source == "certificate"
+    assert g.arm_px == guess.length and g.width_px == guess.width
