@@ -46,10 +46,10 @@ from scipy.spatial import cKDTree
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.marks import coarse, grid
-from softplot.marks.geometry import estimate_geometry
+from softplot.marks.geometry import estimate_geometry, width_candidates
 from softplot.marks.measure import AcceptRules, measure, median_blur
 from softplot.marks.result import Detection
-from softplot.marks.template import cross_shape
+from softplot.marks.template import MarkShape, cross_shape
 from softplot.runtime import thread_map
 
 __all__ = ["detect", "as_scan", "DetectionError"]
@@ -386,6 +386,22 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     prof = np.where(use)[0]
     geom = estimate_geometry(sc.grey, c0[prof], A0[prof], shape, sign,
                              pitch_px=min(res.pitch_x, res.pitch_y) * ppm, score=val[prof])
+    s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
+    init_err = max(0.75, 0.5 * f + 0.25)
+    timings["profiles"] = time.perf_counter() - t0
+    widths = width_candidates(geom, shape.width)
+    if len(widths) > 1:
+        # the profiles contradict the guess: the least-squares fit of the best crosses decides
+        trial = prof[np.argsort(-val[prof])[:8]]
+        scores = []
+        for w in widths:
+            ft = measure(sc, MarkShape("cross", length=geom.arm_px, width=w), c0[trial],
+                         A0[trial], s0, init_err, sign, rules, anchor=pred[trial],
+                         max_shift=radius_ov * f + 1.0)
+            scores.append(float(np.mean(np.where(ft.ok, ft.score, 0.0))))
+        geom = geom.with_width(widths[int(np.argmax(scores))])
+    else:
+        geom = geom.with_width(widths[0])
     shape = geom.shape()
     timings["geometry"] = time.perf_counter() - t0
 
@@ -400,8 +416,6 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
               & (pred[:, 1] >= 0) & (pred[:, 1] <= sc.height - 1))
     timings["predict"] = time.perf_counter() - t0
 
-    s0 = float(np.hypot(blur_px, np.sqrt(1.0 / 12.0)))
-    init_err = max(0.75, 0.5 * f + 0.25)
     idx = np.where(inside)[0]
     # "auto": the joint scene where the first pass sees sharp scene edges at the crosses
     fine = measure(sc, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],

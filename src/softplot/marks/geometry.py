@@ -23,19 +23,23 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import map_coordinates, uniform_filter1d
-from scipy.optimize import least_squares
 from scipy.special import ndtr
 
 from softplot.marks.template import MarkShape
 
-__all__ = ["MarkGeometry", "estimate_geometry", "ARM_RANGE", "WIDTH_RANGE"]
+__all__ = ["MarkGeometry", "estimate_geometry", "width_candidates", "ARM_RANGE", "WIDTH_RANGE"]
 
 #: admissible true arm length, times the starting guess (certificate or default)
 ARM_RANGE = (0.3, 3.0)
 #: admissible true line width, times the starting guess
 WIDTH_RANGE = (0.35, 3.0)
 #: crosses profiled (the best-scoring ones)
-MAX_MARKS = 24
+MAX_MARKS = 12
+#: a line is resolved (its width measured, not taken from the guess) when at least this many
+#: times the blur sigma wide
+WIDTH_RESOLVED = 1.5
+#: profiles and guess agree on the line width within these ratios
+WIDTH_AGREE = (0.8, 1.25)
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,13 @@ class MarkGeometry:
     width_spread_px: float
     n: int
     source: str
+    #: the scan's blur sigma (px) from the bars' ends (with the profiles' interpolation)
+    blur_px: float = float("nan")
+
+    def with_width(self, width_px: float) -> "MarkGeometry":
+        """The same geometry with the line width the measuring stage settled on."""
+        return MarkGeometry(self.arm_px, float(width_px), self.arm_spread_px,
+                            self.width_spread_px, self.n, self.source, self.blur_px)
 
     def shape(self) -> MarkShape:
         """The cross template of this geometry (mark frame px)."""
@@ -84,8 +95,51 @@ def _box(x, b, c, a1, a2, s):
     return b + c * (ndtr((x - a1) / s) - ndtr((x - a2) / s))
 
 
-def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float):
-    """Blurred box along a bar: (a1, a2, s, c) or None."""
+def _box_jac(x, b, c, a1, a2, s):
+    """Model and derivatives by (b, c, a1, a2, s): (n,) and (n, 5)."""
+    z1, z2 = (x - a1) / s, (x - a2) / s
+    P = ndtr(z1) - ndtr(z2)
+    g1 = np.exp(-0.5 * z1 * z1) / np.sqrt(2.0 * np.pi)
+    g2 = np.exp(-0.5 * z2 * z2) / np.sqrt(2.0 * np.pi)
+    J = np.stack([np.ones_like(x), P, -c * g1 / s, c * g2 / s,
+                  -c * (z1 * g1 - z2 * g2) / s], 1)
+    return b + c * P, J
+
+
+def _lm(resid_jac, p, lo, hi, iterations=30):
+    """Levenberg-Marquardt with box bounds (clipped steps) on a small problem: the parameters
+    or None when the fit does not converge to finite values."""
+    p = np.asarray(p, float)
+    r, J = resid_jac(p)
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        N = J.T @ J
+        g = J.T @ r
+        D = np.diag(np.diag(N)) + 1e-12 * np.eye(len(p))
+        try:
+            step = np.linalg.solve(N + lam * D, -g)
+        except np.linalg.LinAlgError:
+            return None
+        q = np.clip(p + step, lo, hi)
+        r2, J2 = resid_jac(q)
+        c2 = float(r2 @ r2)
+        if np.isfinite(c2) and c2 < cost:
+            done = cost - c2 < 1e-10 * cost
+            p, r, J, cost, lam = q, r2, J2, c2, lam * 0.3
+            if done:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    return p if np.isfinite(p).all() else None
+
+
+def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float = 0.0):
+    """Blurred box along a bar: (a1, a2, s, c) or None. Samples within ``centre`` of the
+    middle are left out of the fit: where the bars cross, a thin blurred line is darker than
+    along its arms (the other bar's blur adds), which the box does not model."""
     du = float(u[1] - u[0])
     ps = uniform_filter1d(p, max(1, int(round(1.0 / du))))
     b0 = float(np.median(np.concatenate([ps[: len(ps) // 8], ps[-len(ps) // 8:]])))
@@ -106,15 +160,18 @@ def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float):
     a1, a2 = float(u[left]), float(u[r])
     if a2 - a1 < 2.0 * lo * 0.8 or a2 - a1 > 2.0 * hi:
         return None
-    try:
-        fit = least_squares(
-            lambda q: _box(u, q[0], q[1], q[2], q[3], q[4]) - p,
-            [b0, c0, a1, a2, 1.0],
-            bounds=([-np.inf, 0.0, u[0], 0.0, 0.3], [np.inf, np.inf, 0.0, u[-1], 10.0]),
-            x_scale=[abs(c0), abs(c0), 1.0, 1.0, 1.0], max_nfev=60)
-    except ValueError:
+
+    m = (np.abs(u) >= centre).astype(float)
+
+    def rj(q):
+        f, J = _box_jac(u, *q)
+        return (f - p) * m, J * m[:, None]
+
+    q = _lm(rj, [b0, c0, a1, a2, 1.0], [-np.inf, 0.0, u[0], 0.0, 0.3],
+            [np.inf, np.inf, 0.0, u[-1], 10.0])
+    if q is None:
         return None
-    b, c, a1, a2, s = fit.x
+    b, c, a1, a2, s = q
     return a1, a2, s, c
 
 
@@ -127,15 +184,18 @@ def _fit_across(v: np.ndarray, q: np.ndarray, s: float, w0: float):
         return None
     area = float(np.sum(q - b0) * (v[1] - v[0]))
     w_init = float(np.clip(area / c0, 0.3 * w0, 4.0 * w0))
-    try:
-        fit = least_squares(
-            lambda p: _box(v, p[0], p[1], p[2] - 0.5 * p[3], p[2] + 0.5 * p[3], s) - q,
-            [b0, c0, float(v[j]), w_init],
-            bounds=([-np.inf, 0.0, v[0], 0.05], [np.inf, np.inf, v[-1], 8.0 * w0 + 4.0]),
-            x_scale=[abs(c0), abs(c0), 1.0, 1.0], max_nfev=60)
-    except ValueError:
+
+    def rj(p):
+        b, c, v0, w = p
+        f, J = _box_jac(v, b, c, v0 - 0.5 * w, v0 + 0.5 * w, s)
+        Jp = np.stack([J[:, 0], J[:, 1], J[:, 2] + J[:, 3], 0.5 * (J[:, 3] - J[:, 2])], 1)
+        return f - q, Jp
+
+    p = _lm(rj, [b0, c0, float(v[j]), w_init], [-np.inf, 0.0, v[0], 0.05],
+            [np.inf, np.inf, v[-1], 8.0 * w0 + 4.0])
+    if p is None:
         return None
-    b, c, v0, w = fit.x
+    b, c, v0, w = p
     return w, v0, c
 
 
@@ -175,8 +235,8 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     L0, w0 = float(guess.length), float(guess.width)
     H = min(0.5 * ARM_RANGE[1] * L0 + 4.0 * w0 + 6.0, 0.45 * pitch_px)
     V = max(3.0 * WIDTH_RANGE[1] * w0, 6.0) + 3.0
-    du = 0.5 if L0 < 200 else 1.0
-    dv = float(np.clip(w0 / 6.0, 0.2, 0.5))
+    du = 0.5 if ARM_RANGE[0] * L0 < 30 else 1.0
+    dv = float(np.clip(w0 / 4.0, 0.25, 0.5))
     u = np.arange(-H, H + 1e-9, du)
     v = np.arange(-V, V + 1e-9, dv)
     lo_half = 0.5 * ARM_RANGE[0] * L0
@@ -203,21 +263,19 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
             s = map_coordinates(win, [px[1] + y0 - r0, px[0] + x0 - c0], order=1,
                                 mode="nearest").reshape(uu.shape)
             # the bar's position across (coarse centres are off by up to a few px)
-            inner = (np.abs(u) >= 2.0 * w0 + 2.0) & (np.abs(u) <= max(lo_half, 2.0 * w0 + 3.0))
-            if inner.sum() < 2:
-                inner = np.abs(u) <= max(lo_half, 3.0)
-            q = s[:, inner].mean(1)
-            fa = _fit_across(v, q, 1.0, w0)
-            if fa is None:
-                continue
-            band = np.abs(v - fa[1]) <= max(0.5 * fa[0], 0.75)
-            fl = _fit_along(u, s[band].mean(0), lo_half, 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0)
+            # (the other bar adds the same to every v within its width: no bias)
+            inner = np.abs(u) <= max(lo_half, 3.0)
+            q = uniform_filter1d(s[:, inner].mean(1), max(1, int(round(0.5 * w0 / dv))))
+            vc = float(v[int(np.argmax(q))])
+            band = np.abs(v - vc) <= max(0.5 * w0, 0.75)
+            fl = _fit_along(u, s[band].mean(0), lo_half, 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0,
+                            centre=min(1.5 * w0 + 2.0, 0.6 * lo_half))
             if fl is None:
                 continue
             a1, a2, sb, cb = fl
             # across profile between the bar's ends, away from the other bar
-            sel = ((u > a1 + 0.1 * (a2 - a1) + sb) & (u < a2 - 0.1 * (a2 - a1) - sb)
-                   & (np.abs(u - 0.5 * (a1 + a2)) > 0.5 * fa[0] + sb + 1.0))
+            sel = ((u > a1 + 1.5 * sb) & (u < a2 - 1.5 * sb)
+                   & (np.abs(u - 0.5 * (a1 + a2)) > 0.5 * w0 + 1.5 * sb))
             if sel.sum() < 3:
                 continue
             fw = _fit_across(v, s[:, sel].mean(1), sb, w0)
@@ -225,13 +283,40 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
                 continue
             arms.append(a2 - a1)
             widths.append(fw[0])
-            blurs.append((cb, fw[2]))
+            blurs.append((cb, sb))
     arms_a, widths_a = np.asarray(arms), np.asarray(widths)
+    blur_a = np.asarray(blurs).reshape(-1, 2)[:, 1]
     if len(arms_a) >= 2:
         c = np.asarray(blurs)[:, 0]
         keep = c >= 0.3 * np.median(c)  # bars without contrast: one-armed or dark crosses
-        arms_a, widths_a = arms_a[keep], widths_a[keep]
+        arms_a, widths_a, blur_a = arms_a[keep], widths_a[keep], blur_a[keep]
     if len(arms_a) < 2:
         return MarkGeometry(L0, w0, float("nan"), float("nan"), int(len(arms_a)), "certificate")
-    return MarkGeometry(float(np.median(arms_a)), float(np.median(widths_a)),
-                        _robust_std(arms_a), _robust_std(widths_a), int(len(arms_a)), "scan")
+    w = float(np.median(widths_a))
+    sb = float(np.median(blur_a))
+    return MarkGeometry(float(np.median(arms_a)), w, _robust_std(arms_a), _robust_std(widths_a),
+                        int(len(arms_a)), "scan", blur_px=sb)
+
+
+def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
+    """Line widths (px) worth a least-squares trial, the guess first.
+
+    The profiles measure a resolved line (at least :data:`WIDTH_RESOLVED` blur sigmas wide)
+    well on a clean scan, but a busy scene biases them, and a line narrower than the blur has
+    the blur's profile whatever its width. So the guess stands unless the profiles contradict
+    it (a ratio beyond :data:`WIDTH_AGREE`); then the measured width and steps of sqrt(2)
+    from the guess towards it (or, for an unresolved line, towards the blur) are tried too,
+    and the least-squares fit of the crosses decides (:func:`best_width`).
+    """
+    w0 = float(guess_px)
+    if geom.source != "scan" or not np.isfinite(geom.width_px):
+        return [w0]
+    w = float(geom.width_px)
+    if np.isfinite(geom.blur_px) and w < WIDTH_RESOLVED * geom.blur_px:
+        w = max(w, 0.5 * geom.blur_px)
+    r = w / w0
+    if WIDTH_AGREE[0] <= r <= WIDTH_AGREE[1]:
+        return [w0]
+    steps = int(min(np.ceil(abs(np.log(r)) / np.log(np.sqrt(2.0))), 4))
+    out = [w0] + [w0 * r ** (k / steps) for k in range(1, steps + 1)]
+    return [float(np.clip(x, WIDTH_RANGE[0] * w0, WIDTH_RANGE[1] * w0)) for x in out]
