@@ -38,6 +38,9 @@ MAX_MARKS = 12
 #: a line is resolved (its width measured, not taken from the guess) when at least this many
 #: times the blur sigma wide
 WIDTH_RESOLVED = 1.5
+#: the profiles measure the arm length (line width) when their robust spread over the
+#: crosses is at most this fraction of it
+CONSISTENT = (0.1, 0.5)
 #: profiles and guess agree on the line width within these ratios
 WIDTH_AGREE = (0.8, 1.25)
 
@@ -294,8 +297,13 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
         return MarkGeometry(L0, w0, float("nan"), float("nan"), int(len(arms_a)), "certificate")
     w = float(np.median(widths_a))
     sb = float(np.median(blur_a))
-    return MarkGeometry(float(np.median(arms_a)), w, _robust_std(arms_a), _robust_std(widths_a),
-                        int(len(arms_a)), "scan", blur_px=sb)
+    arm, sa, sw = float(np.median(arms_a)), _robust_std(arms_a), _robust_std(widths_a)
+    if not sa <= CONSISTENT[0] * arm:
+        # the crosses disagree about their size: scene content along the bars, not the marks
+        return MarkGeometry(L0, w0, sa, sw, int(len(arms_a)), "certificate")
+    if not sw <= CONSISTENT[1] * w:
+        w = float("nan")  # the width is not measured: the guess stands (width_candidates)
+    return MarkGeometry(arm, w, sa, sw, int(len(arms_a)), "scan", blur_px=sb)
 
 
 def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
@@ -309,9 +317,11 @@ def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
     and the least-squares fit of the crosses decides (:func:`best_width`).
     """
     w0 = float(guess_px)
-    if geom.source != "scan" or not np.isfinite(geom.width_px):
+    if geom.source != "scan":
         return [w0]
     w = float(geom.width_px)
+    if not np.isfinite(w):
+        return [w0]
     if np.isfinite(geom.blur_px) and w < WIDTH_RESOLVED * geom.blur_px:
         w = max(w, 0.5 * geom.blur_px)
     r = w / w0
