@@ -67,3 +67,20 @@ def true_right(scene, left_px) -> tuple[np.ndarray, np.ndarray]:
     ph2 = scene.pair.photo(1, P)
     px = scene.mapping[1].film_to_pixel(scene.io.photo_to_film(ph2))
     return px, scene.terrain[1].visible(P)
+
+
+def true_session(scene, folder) -> Path:
+    """A plotting session of the scene's scans with the TRUE exterior orientation."""
+    from softplot.pipeline.session import Session, scan_photo_map
+    from softplot.stereo.model import OrientedPhoto, StereoModel
+
+    folder = Path(folder)
+    if (folder / "session.json").exists():
+        return folder
+    photos = []
+    for k, side in enumerate(("left", "right")):
+        m = scan_photo_map(scene.scans[k], scene.camera, str(scene.detections[k]))
+        photos.append(OrientedPhoto(scene.pair.X0[k], scene.pair.angles[k], scene.pair.c[k],
+                                    0.0, 0.0, to_photo=m, to_film=m.inverse, name=side))
+    Session.create(folder, StereoModel(*photos)).close()
+    return folder

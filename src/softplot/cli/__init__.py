@@ -41,6 +41,7 @@ COMMANDS = [
     "export",
     "view",
     "match",
+    "epipolar",
 ]
 
 
