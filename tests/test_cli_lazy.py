@@ -9,8 +9,9 @@ import subprocess
 import sys
 
 import click
-import softplot.cli as cli_pkg
 from click.testing import CliRunner
+
+import softplot.cli as cli_pkg
 from softplot.cli import COMMAND_TABLE, cli
 
 
