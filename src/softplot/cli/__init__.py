@@ -22,7 +22,7 @@ from softplot.errors import SoftplotError
 #: is each command's own first help line.
 COMMAND_TABLE: list[tuple[str, str, str]] = [
     ("cameras", "cameras",
-     "List the built-in camera certificates (``cameras show NAME`` prints one)."),
+     "List the built-in camera certificates (`softplot cameras show NAME` prints one)."),
     ("synth", "synth",
      "Render synthetic scans of CAMERA's film frame into OUTDIR, each with "
      "<stem>.truth.json."),

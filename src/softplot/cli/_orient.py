@@ -19,13 +19,17 @@ from softplot import __version__
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import from_radians, to_radians
 
-ANGLE_HELP = "Unit of every angle read and written: deg (default), gon (400/turn) or rad."
+ANGLE_HELP = (
+    "Unit of every angle read and written: deg (default), gon (400/turn) or rad. "
+    "(--angle-unit is the older name.)"
+)
 
 
 def angles_option(f):
-    """The ``--angles deg|gon|rad`` option."""
+    """The ``--angles deg|gon|rad`` option, the same name and default in every command."""
     return click.option(
         "--angles",
+        "--angle-unit",
         "angle_unit",
         type=click.Choice(["deg", "gon", "rad"]),
         default="deg",

@@ -18,6 +18,7 @@ from softplot.cli._bundle_common import (
     write_json,
     write_residuals_csv,
 )
+from softplot.cli._orient import angles_option
 from softplot.errors import SoftplotError
 
 
@@ -48,9 +49,7 @@ from softplot.errors import SoftplotError
     default=None,
     help="Free network scale from a distance: POINT_A POINT_B DISTANCE.",
 )
-@click.option(
-    "--angle-unit", type=click.Choice(["deg", "gon", "rad"]), default="deg", show_default=True
-)
+@angles_option
 @click.option(
     "--alpha",
     type=float,
@@ -58,7 +57,8 @@ from softplot.errors import SoftplotError
     show_default=True,
     help="Data-snooping significance level.",
 )
-@click.option("--max-iterations", type=int, default=100, show_default=True)
+@click.option("--max-iterations", type=click.IntRange(min=1), default=100, show_default=True,
+              help="Most Gauss-Newton iterations before the adjustment stops unconverged.")
 @click.option(
     "--residuals",
     "residuals_out",

@@ -17,6 +17,7 @@ from softplot.cli._bundle_common import (
     refuse_existing_truth,
     write_json,
 )
+from softplot.cli._orient import angles_option
 from softplot.errors import SoftplotError
 
 
@@ -36,9 +37,7 @@ from softplot.errors import SoftplotError
     "the repeatability of x0, y0, c.",
 )
 @output_options()
-@click.option(
-    "--angle-unit", type=click.Choice(["deg", "gon", "rad"]), default="gon", show_default=True
-)
+@angles_option
 @click.option(
     "--make-synthetic",
     is_flag=True,
@@ -60,9 +59,11 @@ from softplot.errors import SoftplotError
     help="--make-synthetic: number of series (0: none).",
 )
 @click.option(
-    "--noise-um", type=float, default=2.0, show_default=True, help="--make-synthetic: image noise."
+    "--noise-um", type=float, default=2.0, show_default=True,
+    help="--make-synthetic: image noise, micrometres (1 sigma).",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="--make-synthetic: seed of the random noise (same seed, same project).")
 def command(
     project,
     free,

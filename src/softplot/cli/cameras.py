@@ -10,7 +10,7 @@ from softplot.camera import builtin_names, describe, load_camera, to_toml
 @click.group("cameras", invoke_without_command=True)
 @click.pass_context
 def command(ctx: click.Context) -> None:
-    """List the built-in camera certificates (``cameras show NAME`` prints one)."""
+    """List the built-in camera certificates (`softplot cameras show NAME` prints one)."""
     if ctx.invoked_subcommand is None:
         for name in builtin_names():
             cam = load_camera(name)

@@ -48,10 +48,19 @@ class _DefaultGroup(click.Group):
         return super().parse_args(ctx, args)
 
     def format_usage(self, ctx, formatter):
-        formatter.write_usage(
-            ctx.command_path, "SCAN --camera C (--points IN.csv --out OUT.csv | --resample OUT.tif)"
-        )
-        formatter.write_usage(ctx.command_path, "compare SCAN|DET.json --camera C")
+        formatter.write_usage(ctx.command_path,
+                              "SCAN|DET.json --camera C [OPTIONS] | COMMAND [ARGS]...")
+
+    def format_options(self, ctx, formatter):
+        """The group's options and commands, then the options of the default form (``apply``),
+        which is what ``softplot correct SCAN ...`` runs."""
+        super().format_options(ctx, formatter)
+        apply = self.commands[self.default_command]
+        sub = click.Context(apply, info_name=self.default_command, parent=ctx)
+        rows = [r for p in apply.get_params(sub) if isinstance(p, click.Option)
+                and p.name != "help" and (r := p.get_help_record(sub)) is not None]
+        with formatter.section("Options of softplot correct SCAN|DET.json ... (the apply form)"):
+            formatter.write_dl(rows)
 
 
 @click.group("correct", cls=_DefaultGroup)

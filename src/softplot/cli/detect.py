@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from softplot.cli._detect_opts import detection_options
 from softplot.errors import SoftplotError
 
 
@@ -22,19 +23,10 @@ def _out_path(base: Path | None, stem: str, many: bool, suffix: str) -> Path | N
 @click.command("detect")
 @click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--camera", required=True, help="Built-in camera name or certificate TOML.")
-@click.option("--dpi", type=float, default=None, help="Scan resolution (default: the file's, "
+@click.option("--dpi", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Scan resolution (default: the file's, "
               "else estimated from the image).")
-@click.option("--polarity", type=click.Choice(["auto", "positive", "negative"]),
-              default="auto", show_default=True,
-              help="positive: dark marks (print); negative: bright marks (film negative).")
-@click.option("--rotate", type=click.Choice(["0", "90", "180", "270"]), default="0",
-              show_default=True, help="The photo is turned this much counter-clockwise in the "
-              "scan (residual rotations of +-20 degrees are found automatically).")
-@click.option("--scene", type=click.Choice(["auto", "opening", "joint"]), default="auto",
-              show_default=True, help="The scene under each cross: opening (the grey "
-              "opening's estimate, fastest), joint (estimated jointly with the cross: about "
-              "3-5x the time, more accurate over sharp-edged scene content), auto (joint where "
-              "the scene has sharp edges at the crosses).")
+@detection_options
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None,
               help="Write the result JSON here (one scan).")
 @click.option("--out-dir", type=click.Path(file_okay=False), default=None,

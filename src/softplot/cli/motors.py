@@ -70,7 +70,8 @@ def _open(port, timeout):
 
 @command.command("status")
 @click.argument("port")
-@click.option("--timeout", type=float, default=2.0, show_default=True)
+@click.option("--timeout", type=float, default=2.0, show_default=True,
+              help="Seconds to wait for the controller's answer.")
 def status(port, timeout):
     """Print the controller's state and DX, DY (instrument mm) on PORT."""
     with _open(port, timeout) as m:
@@ -83,7 +84,8 @@ def status(port, timeout):
 @click.argument("port")
 @click.argument("dx", type=float)
 @click.argument("dy", type=float)
-@click.option("--timeout", type=float, default=30.0, show_default=True)
+@click.option("--timeout", type=float, default=30.0, show_default=True,
+              help="Seconds to wait for the move to end.")
 def move(port, dx, dy, timeout):
     """Move the secondary carriage to DX, DY (instrument mm) and wait."""
     with _open(port, timeout) as m:

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-import numpy as np
 
+from softplot.cli._orient import ang_in, angles_option
 from softplot.cli.restitute import PHOTO_COLUMNS, _read_csv
 from softplot.errors import SoftplotError
 
@@ -34,10 +34,14 @@ def _motors(port: str | None, timeout: float):
     "photos_path",
     required=True,
     type=click.Path(path_type=Path),
-    help="Two rows, left first: photo,X0,Y0,Z0,omega,phi,kappa,c (degrees, mm).",
+    help="Two rows, left first: photo,X0,Y0,Z0,omega,phi,kappa,c (angles in --angles "
+    "units, c in mm).",
 )
+@angles_option
 @click.option(
-    "--mode", type=click.Choice(["single", "contour", "free"]), default="single", show_default=True
+    "--mode", type=click.Choice(["single", "contour", "free"]), default="single", show_default=True,
+    help="The STEREOBIT mode the session starts in: single points (x-parallax handwheel), "
+    "contour (height locked) or free (both carriages).",
 )
 @click.option("--height", type=float, default=None, help="Contour height (contour mode).")
 @click.option(
@@ -67,7 +71,7 @@ def _motors(port: str | None, timeout: float):
 @click.option("--dpi", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Scan resolution, dots per inch, when the files do not record it.")
 def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, camera,
-        left_detection, right_detection, method, dpi):
+        left_detection, right_detection, method, dpi, angle_unit="deg"):
     """Start a session in FOLDER from an oriented pair (and, optionally, its scans)."""
     from softplot.pipeline.session import Session, scan_photo_map
     from softplot.stereo import OrientedPhoto, StereoModel
@@ -91,7 +95,7 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
         raise SoftplotError("--left-detection/--right-detection need the scans (--left-scan ...)")
     model = StereoModel(
         *[
-            OrientedPhoto(r[0:3], np.deg2rad(r[3:6]), r[6], name=n,
+            OrientedPhoto(r[0:3], ang_in(r[3:6], angle_unit), r[6], name=n,
                           to_photo=m, to_film=None if m is None else m.inverse)
             for n, r, m in zip(names, ph, maps, strict=True)
         ]
@@ -132,7 +136,8 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
     default=None,
     help="Drive a GRBL instrument on this serial port instead of the virtual motors.",
 )
-@click.option("--timeout", type=float, default=5.0, show_default=True)
+@click.option("--timeout", type=float, default=5.0, show_default=True,
+              help="Seconds to wait for the carriage to reach each point.")
 def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout):
     """Run the plotter over scripted operator input and record features in FOLDER."""
     from softplot.pipeline.session import Session

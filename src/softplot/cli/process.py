@@ -14,6 +14,7 @@ from pathlib import Path
 
 import click
 
+from softplot.cli._detect_opts import detection_options
 from softplot.errors import SoftplotError
 
 
@@ -22,7 +23,8 @@ def common_options(f):
     from softplot.cli.correct import METHOD_NAMES
 
     f = click.option("--quiet", is_flag=True, help="No progress bar.")(f)
-    f = click.option("--dpi", type=float, default=None,
+    f = detection_options(f)
+    f = click.option("--dpi", type=click.FloatRange(min=0, min_open=True), default=None,
                      help="Scan resolution when the files do not say.")(f)
     f = click.option("--pixel-size", "pixel_size", type=float, default=None,
                      help="Pixel size of flattened images, um (default: the scan's).")(f)
@@ -38,20 +40,23 @@ def common_options(f):
     return f
 
 
-def task_kwargs(camera, method, flatten, pixel_size, dpi) -> dict:
+def task_kwargs(camera, method, flatten, pixel_size, dpi, polarity="auto", rotate="0",
+                scene="auto") -> dict:
     from softplot.camera import load_camera
 
     load_camera(camera)  # bad camera: one line, exit 2, before any work
     if pixel_size is not None and not pixel_size > 0:
         raise SoftplotError(f"--pixel-size must be > 0 um, got {pixel_size}")
     return {"camera": camera, "method": method, "flatten": flatten,
-            "pixel_size_um": pixel_size, "dpi": dpi}
+            "pixel_size_um": pixel_size, "dpi": dpi, "polarity": polarity,
+            "rotate": float(rotate), "scene": scene}
 
 
 @click.command("process")
 @click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @common_options
-def command(scans, camera, out, flatten, method, pixel_size, dpi, quiet) -> int:
+def command(scans, camera, out, flatten, method, pixel_size, dpi, polarity, rotate, scene,
+            quiet) -> int:
     """Detect marks, cross-validate film corrections and check quality of SCANS.
 
     Exit code 0 when every scan is done, 1 when some failed (see summary.csv), 2 on bad
@@ -65,7 +70,7 @@ def command(scans, camera, out, flatten, method, pixel_size, dpi, quiet) -> int:
         if not p.is_file():
             raise SoftplotError(f"{p}: scan file not found")
     check_stems(paths)
-    kw = task_kwargs(camera, method, flatten, pixel_size, dpi)
+    kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene)
     rep = process_scans(paths, out, progress=not quiet, **kw)
     report = write_report(Path(out) / "report.html", load_results(out, rep.rows))
     click.echo(rep.table())

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from softplot.cli._orient import ang_in, angles_option
 from softplot.errors import SoftplotError
 
 PHOTO_COLUMNS = ("photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c")
@@ -60,8 +61,9 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
     required=True,
     type=click.Path(path_type=Path),
     help="CSV with two rows (left first): photo,X0,Y0,Z0,omega,phi,kappa,c "
-    "(angles in degrees, c in mm).",
+    "(angles in --angles units, c in mm).",
 )
+@angles_option
 @click.option(
     "--mode",
     required=True,
@@ -84,7 +86,7 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
     type=click.Path(path_type=Path),
     help="Output CSV: name,x1,y1,x2,y2,X,Y,Z,py (py = residual y-parallax, mm).",
 )
-def command(photos_path, mode, points_path, height, out_path):
+def command(photos_path, mode, points_path, height, out_path, angle_unit="deg"):
     """Restitute points of an oriented stereo pair in one of the four STEREOBIT modes."""
     from softplot.stereo.model import OrientedPhoto, StereoModel
 
@@ -98,7 +100,7 @@ def command(photos_path, mode, points_path, height, out_path):
             f"photos file {photos_path} needs exactly 2 rows (left, right), got {len(names)}"
         )
     photos = [
-        OrientedPhoto(row[0:3], np.deg2rad(row[3:6]), row[6], name=nm)
+        OrientedPhoto(row[0:3], ang_in(row[3:6], angle_unit), row[6], name=nm)
         for nm, row in zip(names, ph, strict=True)
     ]
     model = StereoModel(*photos)

@@ -28,6 +28,8 @@ from softplot.errors import SoftplotError
     type=click.Choice(["bundle", "independent-models"]),
     default="bundle",
     show_default=True,
+    help="bundle: one simultaneous bundle adjustment; independent-models: models formed "
+    "first, then joined by a 3D similarity each (the classical aerial triangulation).",
 )
 @click.option(
     "--pc-tie",
@@ -56,8 +58,10 @@ from softplot.errors import SoftplotError
     show_default=True,
     help="--make-synthetic: photos per strip (models = strips x (photos - 1)).",
 )
-@click.option("--noise-um", type=float, default=3.0, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--noise-um", type=float, default=3.0, show_default=True,
+              help="--make-synthetic: image noise, micrometres (1 sigma).")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="--make-synthetic: seed of the random noise (same seed, same project).")
 def command(
     project,
     method,

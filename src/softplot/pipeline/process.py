@@ -82,6 +82,8 @@ def process_scan(
     pixel_size_um: float | None = None,
     dpi: float | None = None,
     polarity: str = "auto",
+    rotate: float = 0.0,
+    scene: str = "auto",
     crossval_methods=None,
 ) -> dict:
     """Detect, correct and check one scan; write ``<out_dir>/<stem>.json`` atomically.
@@ -103,6 +105,10 @@ def process_scan(
     dpi : float, optional
         Scan resolution when the file does not say.
     polarity : {"auto", "positive", "negative"}
+    rotate : float
+        The photo is turned this much (degrees, counter-clockwise) in the scan.
+    scene : {"auto", "opening", "joint"}
+        The scene estimate under each cross (see :func:`softplot.marks.detect`).
     crossval_methods : sequence of str, optional
         Methods to cross-validate (default: all of :data:`softplot.correction.METHODS`).
 
@@ -139,7 +145,7 @@ def process_scan(
     if method is not None and method not in METHODS:
         raise SoftplotError(f"unknown correction method {method!r} (one of {', '.join(METHODS)})")
     sc = load_scan(scan)
-    det = detect(sc, cam, dpi=dpi, polarity=polarity)
+    det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=rotate, scene=scene)
     dj = det.to_json()
     dj["image"] = str(scan)
     marks = dj["marks"]
