@@ -16,7 +16,7 @@ from softplot.errors import SoftplotError
 #: shipped: cameras 0-7 of the Ladybug problem (tools/make_bal_subset.py; tests/data/bal/README.md)
 SMALL = Path(__file__).parent / "data" / "bal" / "ladybug-8.txt"
 #: optional: the whole Ladybug problem, in the shared data folder beside the repository
-LADYBUG = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal" / "problem-49-7776-pre.txt"
+LADYBUG = Path(__file__).resolve().parents[2] / "shared/data/bal/problem-49-7776-pre.txt"
 needs_data = pytest.mark.skipif(not LADYBUG.is_file(), reason="the full Ladybug problem (optional "
                                 "benchmark input) is not beside the repository")
 

@@ -33,7 +33,7 @@ from softplot.orientation.bundle import bundle_adjust
 from softplot.orientation.bundle_init import initialize
 from softplot.synthetic.block import make_block
 
-LADYBUG = Path(__file__).resolve().parents[2] / "shared" / "data" / "bal" / "problem-49-7776-pre.txt"
+LADYBUG = Path(__file__).resolve().parents[2] / "shared/data/bal/problem-49-7776-pre.txt"
 
 
 def bench_bal(repeat: int) -> dict:
