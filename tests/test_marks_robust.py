@@ -172,7 +172,7 @@ def test_bad_inputs_name_expected_and_found():
     blank = np.full((1500, 1500), 200, np.uint8)
     with pytest.raises(DetectionError, match="blank"):
         detect(Scan.from_array(blank, dpi=600), CAM)
-    small = np.ascontiguousarray(img[:300, :300])
+    small = np.ascontiguousarray(img[:150, :150])  # not even 3 x 3 crosses
     with pytest.raises(DetectionError, match="much smaller"):
         detect(Scan.from_array(small, dpi=600), CAM)
     noise = np.random.default_rng(0).integers(0, 255, (1500, 1500)).astype(np.uint8)

@@ -79,6 +79,11 @@ JOINT_PASSES = 4
 #: smooth textures reach 0.09 at most, its busy scenes 0.18-0.5 (docs/accuracy.md)
 BUSY_EDGE = 0.13
 BUSY_COUNT = 2
+#: the step of grey (over the scan's range) that a film format's edge shows at least
+FRAME_STEP = 0.25
+#: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
+#: a part of 3 x 3 crosses with a few missing still passes
+MIN_PART = 6
 
 
 class DetectionError(SoftplotError):
@@ -165,6 +170,56 @@ def _search_map(R, h, sign, xy_ov, radius):
     return out, val
 
 
+def _frame_evidence(ov, f: int, ppm: float):
+    """The evidence of a film format's edge in the overview, for :func:`grid.fit_grid`.
+
+    Returns a function of format corners (K, 4, 2) (pixel system; top-left, top-right,
+    bottom-right, bottom-left) giving, per quadrilateral, the sum over its edges that lie in
+    the scan of the step of grey across the edge (median of inside minus outside, 0.3 mm
+    either side, along the edge, over the overview's grey range 5-95 %: near 1 for the
+    unexposed border of a film, small for scene content) less :data:`FRAME_STEP`, over 4:
+    a shift that puts more of the format's edges on real steps wins, one that puts an edge on
+    scene content loses. Edges outside the scan are left out.
+    """
+    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    Hh, W = g.shape
+    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
+    lo, hi = np.percentile(sub, [5, 95])
+    rng = max(float(hi - lo), 1e-6)
+    d = max(2.0, 0.3 * ppm / f)
+    t = np.linspace(0.05, 0.95, 48)
+
+    def sample(p):
+        x = np.round((p[..., 0] + 0.5) / f - 0.5).astype(int)
+        y = np.round((p[..., 1] + 0.5) / f - 0.5).astype(int)
+        ok = (x >= 0) & (x < W) & (y >= 0) & (y < Hh)
+        return np.where(ok, g[np.clip(y, 0, Hh - 1), np.clip(x, 0, W - 1)], np.nan), ok
+
+    def evidence(corners):
+        corners = np.asarray(corners, float)
+        out = np.zeros(len(corners))
+        for k, q in enumerate(corners):
+            c = q.mean(0)
+            steps = []
+            for e in range(4):
+                a, b = q[e], q[(e + 1) % 4]
+                p = a[None, :] + t[:, None] * (b - a)[None, :]
+                tang = (b - a) / max(np.hypot(*(b - a)), 1e-9)
+                n = np.array([tang[1], -tang[0]])
+                if np.dot(n, 0.5 * (a + b) - c) < 0:
+                    n = -n  # outward
+                gi, oi = sample(p - n * d * f)
+                go, oo = sample(p + n * d * f)
+                ok = oi & oo
+                if ok.sum() < 12:
+                    continue
+                steps.append(abs(float(np.median(gi[ok] - go[ok]))) / rng)
+            out[k] = float(np.sum(np.asarray(steps) - FRAME_STEP)) / 4.0 if steps else 0.0
+        return np.clip(out, -1.0, 1.0)
+
+    return evidence
+
+
 def _reseau_factor(line_px: float, npix: int) -> int:
     """Overview reduction: a cross line about 0.6-1.2 overview px wide."""
     f = max(1, int(line_px / 0.62))
@@ -206,7 +261,9 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
         xy = coarse.ov_to_full(pk.xy, f)
         fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
                                  px_per_mm=px_per_mm, rotate_deg=rotate_deg,
-                                 margin_px=0.5 * shape_ov.length * f)
+                                 margin_px=0.5 * shape_ov.length * f,
+                                 frame_evidence=_frame_evidence(ov, f, px_per_mm),
+                                 format_mm=camera.format_mm)
     best = None
     for sg in signs:  # the best score wins, the first polarity on a tie
         g = fits.get(sg)
@@ -323,12 +380,18 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         dpi = best_g.px_per_mm * MM_PER_INCH
         del ov, R
     ppm = dpi / MM_PER_INCH
-    need = (span_mm[0] * ppm * 0.5, span_mm[1] * ppm * 0.5)
-    if sc.width < need[0] or sc.height < need[1]:
+    # a part of the grid is enough: the scan must hold 3 x 3 crosses (or the whole grid, when
+    # smaller), in either orientation (a quarter turn)
+    part_mm = ((min(res.cols, 3) - 1) * res.pitch_x + res.arm_length_mm,
+               (min(res.rows, 3) - 1) * res.pitch_y + res.arm_length_mm)
+    need = sorted((part_mm[0] * ppm * 0.9, part_mm[1] * ppm * 0.9))
+    have = sorted((sc.width, sc.height))
+    if have[0] < need[0] or have[1] < need[1]:
         raise DetectionError(
             f"{name}: scan of {sc.width}x{sc.height} px is much smaller than the "
             f"{cam.name} reseau at {dpi:.0f} dpi (expected about "
-            f"{span_mm[0] * ppm:.0f}x{span_mm[1] * ppm:.0f} px or more)")
+            f"{span_mm[0] * ppm:.0f}x{span_mm[1] * ppm:.0f} px, and at least "
+            f"{part_mm[0] * ppm:.0f}x{part_mm[1] * ppm:.0f} px for a part of 3x3 crosses)")
     shape = cross_shape(cam, ppm)
     f = _reseau_factor(shape.width, npix)
     ov = coarse.overview_compact(sc, f)
@@ -359,7 +422,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         del R2
     timings["grid"] = time.perf_counter() - t0
     n_assigned = len(g.node)
-    if n_assigned < max(4, 0.2 * res.count):
+    if n_assigned < min(MIN_PART, res.count):
         raise DetectionError(
             f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm, found only {n_assigned} on a lattice")
@@ -462,7 +525,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
-    if n_meas < max(4, 0.2 * len(idx)):
+    if n_meas < min(4, res.count):
         # a lattice of candidates was found, but the crosses do not hold up at full
         # resolution (scene texture, the wrong polarity or the wrong camera)
         raise DetectionError(
@@ -479,6 +542,14 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
             f"{MAX_GRID_RMS_MM * ppm:.1f} px, {MAX_GRID_RMS_MM} mm, for a reseau)")
     if n_meas < N:
         warnings.append(f"{N - n_meas} of {N} crosses not measured")
+    if g.ambiguous:
+        warnings.append("the scan shows a part of the grid that could be several (no edge of "
+                        "the format decides): rows and columns are named as if the scan were "
+                        "centred on the format")
+    if n_meas < 0.2 * len(idx):
+        # never thrown away for being few: returned, with the warning
+        warnings.append(f"only {n_meas} of the {len(idx)} crosses inside the scan measured: "
+                        "check the camera, --polarity and --dpi")
     timings["total"] = time.perf_counter() - t0
     return Detection(
         image=name,

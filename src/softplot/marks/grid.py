@@ -169,6 +169,9 @@ class GridFit:
         RMS residual (px) of the assigned peaks against ``H``.
     score : float
         Sum of the assigned peaks' scores.
+    ambiguous : bool
+        Other row/col shifts fit the crosses and the format's edges as well (a strip through
+        the grid): the one nearest the scan's centre was taken.
     """
 
     H: np.ndarray
@@ -178,6 +181,7 @@ class GridFit:
     rotation_deg: float
     rms: float
     score: float
+    ambiguous: bool = False
 
 
 def _random_triplets(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
@@ -203,6 +207,8 @@ def fit_grid(
     rotate_deg: float = 0.0,
     margin_px: float = 0.0,
     max_rotation_deg: float = 20.0,
+    frame_evidence=None,
+    format_mm: tuple[float, float] | None = None,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
 
@@ -223,6 +229,12 @@ def fit_grid(
         system, measured from pixel +x towards pixel +y.
     margin_px : float
         A cross must lie this far inside the image to count as "should have been seen".
+    frame_evidence, format_mm : callable and (width, height), optional
+        Where several index shifts fit the crosses alike (a part of the grid), the evidence of
+        the film format's edge (``format_mm``, centred on the grid) in the image:
+        ``frame_evidence(corners)`` with the format's corners (K, 4, 2) (pixel system, top-left,
+        top-right, bottom-right, bottom-left) of each such shift returns (K,) figures in
+        [0, 1] (:func:`softplot.marks.detect._frame_evidence`).
     max_rotation_deg : float
         Largest residual rotation accepted.
 
@@ -397,6 +409,21 @@ def fit_grid(
     cxy_y = p0[1] + Bc[1, 0] * b + Bc[1, 1] * a
     off = np.hypot(cxy_x - (W - 1) / 2, cxy_y - (Hh - 1) / 2)
     total = on - (total_sc - on) - 0.5 * mean_sc * unseen - 1e-6 * off
+    if frame_evidence is not None and format_mm is not None:
+        # shifts the crosses cannot tell apart (a part of the grid: a crop through it, a half
+        # frame): the film's format edge, where the scan shows it, decides
+        near = np.argwhere(total >= total.max() - 0.5 * mean_sc)
+        if len(near) > 1:
+            fx = np.array([-1, 1, 1, -1]) * 0.5 * format_mm[0] / reseau.pitch_x + (cols - 1) / 2
+            fy = (rows - 1) / 2 - np.array([1, 1, -1, -1]) * 0.5 * format_mm[1] / reseau.pitch_y
+            a = near[:, 0][:, None] + j_lo + fy[None, :]  # (K, 4) lattice row of each corner
+            b = near[:, 1][:, None] + i_lo + fx[None, :]
+            corners = np.stack([p0[0] + Bc[0, 0] * b + Bc[0, 1] * a,
+                                p0[1] + Bc[1, 0] * b + Bc[1, 1] * a], -1)
+            # steps of 0.05: what differs less is noise, and the scan's centre decides
+            ev = np.round(np.nan_to_num(np.asarray(frame_evidence(corners), float)) / 0.05)
+            total[near[:, 0], near[:, 1]] += 0.1 * mean_sc * ev
+    ambiguous = int(np.sum(total >= total.max() - 0.01 * mean_sc)) > 1
     ja, ib = np.unravel_index(int(np.argmax(total)), total.shape)
     dr = -(ja + j_lo)  # relative index of row 0 is ja + j_lo
     dc = -(ib + i_lo)
@@ -444,4 +471,5 @@ def fit_grid(
         rotation_deg=rot,
         rms=float(np.sqrt(np.mean(np.sum(res**2, 1)))) if len(res) else 0.0,
         score=float(score[cand].sum()),
+        ambiguous=ambiguous,
     )
