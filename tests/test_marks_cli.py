@@ -85,7 +85,7 @@ def test_cli_several_scans_one_bad(scans):
 
 
 @pytest.mark.parametrize("args,needle", [
-    (["--camera", "rollei-6006", "--dpi", "2400"], "much smaller"),
+    (["--camera", "rollei-6006", "--dpi", "9000"], "much smaller"),
     (["--camera", "zeiss-rmk-a-15-23"], "much smaller than the zeiss-rmk-a-15-23 fiducial"),
     (["--camera", "zeiss-rmk-a-15-23", "--dpi", "150"], "fiducial marks not found"),
     (["--camera", "no-such-camera"], "unknown camera"),
