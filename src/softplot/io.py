@@ -651,12 +651,17 @@ def _load_raw(p: Path, kind: str) -> Scan:
 
     try:
         with rawpy.imread(str(p)) as raw:
+            # linear 16-bit, no brightening, the sensor's geometry: gamma 1, no auto-bright,
+            # no white-level guess from the data (LibRaw's default adjust_maximum_thr=0.75
+            # rescales a bright frame by its own maximum, so the same film would get another
+            # gain in every exposure), no rotation from the file (the user's --rotate decides)
             rgb = raw.postprocess(
                 gamma=(1, 1),
                 no_auto_bright=True,
                 output_bps=16,
                 use_camera_wb=True,
                 user_flip=0,
+                adjust_maximum_thr=0.0,
             )
     except rawpy.LibRawError as exc:
         raise ScanError(f"{p}: cannot read camera RAW: {_one_line(exc)}") from None
