@@ -75,6 +75,8 @@ COMMAND_TABLE: list[tuple[str, str, str]] = [
      "Tie points between two scans of a stereo pair, each with its precision."),
     ("epipolar", "epipolar",
      "Normalised images of the oriented pair of a plotting SESSION folder."),
+    ("dsm", "dsm",
+     "Dense surface of the oriented pair of a plotting SESSION, with automatic contours."),
 ]
 
 #: sub-command modules of :mod:`softplot.cli`, each exposing ``command``.
