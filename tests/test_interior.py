@@ -22,7 +22,12 @@ def _brown_camera():
 
 def _table_camera():
     cam = load_camera("zeiss-rmk-a-15-23")
-    return cam.with_(x0=0.01, y0=-0.02)
+    table = Distortion(
+        model="radial-table",
+        radius_mm=(0.0, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0),
+        delta_r_um=(0.0, 0.5, 1.0, 1.5, 1.5, 1.0, 0.0, -1.5, -3.0),
+    )
+    return cam.with_(x0=0.01, y0=-0.02, distortion=table)
 
 
 def _grid(half, n=41):
@@ -128,7 +133,7 @@ def test_no_distortion_is_the_principal_point_only():
 
 
 def test_radial_only_brown_fast_branch_matches_general_formula():
-    cam = load_camera("rollei-6006")  # k1 only
+    cam = load_camera("rollei-6006").with_(distortion=Distortion(model="brown", k1=-2e-5))
     io = InteriorOrientation(cam)
     f = _grid(28.0, 11)
     dx, dy = io.distortion(f[:, 0] - cam.x0, f[:, 1] - cam.y0)

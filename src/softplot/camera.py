@@ -156,7 +156,15 @@ class Camera:
     reseau: Reseau | None = None
     description: str = ""
     notes: tuple[str, ...] = ()
+    calibration: str = ""
     source: str = field(default="", compare=False)
+
+    @property
+    def uncalibrated(self) -> bool:
+        """True when the certificate says no calibration stands behind its interior values
+        (``calibration = "none"``: nominal principal distance, zero principal point, no
+        distortion)."""
+        return self.calibration.strip().lower() == "none"
 
     def with_(self, **changes: Any) -> "Camera":
         """A copy with some fields changed."""
@@ -360,6 +368,15 @@ def _parse(data: dict, where: str) -> Camera:
     if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
         raise top.fail("notes", "must be a string or a list of strings")
     description = top.string("description", "")
+    calibration = top.string("calibration", "")
+    if calibration.strip().lower() == "none":
+        # "none" promises nominal values only: no principal-point offset, no distortion
+        if x0 != 0.0 or y0 != 0.0:
+            raise top.fail("calibration", 'is "none" but the principal point is not (0, 0); '
+                           "cite the calibration or set x0_mm = y0_mm = 0")
+        if dist.model != "none":
+            raise top.fail("calibration", 'is "none" but a distortion model is given; '
+                           'cite the calibration or set [distortion] model = "none"')
     return Camera(
         name=name,
         kind=kind,
@@ -375,6 +392,7 @@ def _parse(data: dict, where: str) -> Camera:
         reseau=reseau,
         description=description,
         notes=tuple(str(n) for n in notes),
+        calibration=calibration,
         source=where,
     )
 
@@ -448,6 +466,8 @@ def to_toml(cam: Camera) -> str:
     out = [f"name = {_fmt(cam.name)}", f"kind = {_fmt(cam.kind)}"]
     if cam.description:
         out.append(f"description = {_fmt(cam.description)}")
+    if cam.calibration:
+        out.append(f"calibration = {_fmt(cam.calibration)}")
     if cam.notes:
         out.append("notes = [")
         out += [f"  {_fmt(n)}," for n in cam.notes]
@@ -563,6 +583,10 @@ def describe(cam: Camera) -> str:
             f"  reseau            {r.rows} x {r.cols} crosses, pitch {r.pitch_x} x {r.pitch_y} mm, "
             f"arm {r.arm_length_mm} mm, line {r.line_width_mm} mm ({cal} coordinates)"
         )
+    if cam.uncalibrated:
+        lines.append("  calibration       none: nominal interior values, no distortion model")
+    elif cam.calibration:
+        lines.append(f"  calibration       {cam.calibration}")
     for n in cam.notes:
         lines.append(f"  note: {n}")
     lines.append(f"  source: {cam.source}")

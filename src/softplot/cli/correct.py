@@ -155,6 +155,12 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
     fc = FilmCorrection.from_detection(cam, det, method)
     click.echo(fc.describe())
     if points is not None:
+        if to == "photo" and cam.uncalibrated:
+            click.echo(
+                f"note: the certificate {cam.name!r} has no calibration (calibration = \"none\"): "
+                "photo coordinates use its nominal principal distance, a principal point at the "
+                "origin and no distortion correction"
+            )
         mm, flags = fc.pixel_to(xy, to)
         write_points_csv(out, names, mm, flags)
         counts = {k: int((flags == v).sum()) for k, v in (("ok", 0), ("outside-reseau", 1),
