@@ -248,7 +248,7 @@ def test_refusals(scan, tmp_path, capsys):
     assert code == 2 and "tps" in se
     code, _, se = _run(["correct", scan["img"], "-c", "pentax-645", "-d", scan["det"], "--points",
                         p, "--out", tmp_path / "y.csv"], capsys)
-    assert code == 2 and "wrong camera" in se
+    assert code == 2 and "'rollei-6006'" in se and "'pentax-645'" in se
     code, _, se = _run(base + ["--resample", tmp_path / "flat.png"], capsys)
     assert code == 2 and ".tif" in se
     code, so, se = _run(["correct", "--help"], capsys)

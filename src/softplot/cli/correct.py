@@ -87,28 +87,34 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def _marks(scan_path: Path | None, camera, detection: Path | None):
-    """(detection dict, scan or None): the marks from DET.json or a fresh detection."""
+def _marks(scan_path: Path | None, camera, detection: Path | None, force: bool = False):
+    """(detection dict, scan or None): the marks from DET.json or a fresh detection.
+
+    A detection made on another scan or with another camera is refused (``force``: a warning
+    in the output instead)."""
     from softplot.correction import detect_marks, load_detection
-    from softplot.io import load_scan
+    from softplot.io import fingerprint, load_scan
+    from softplot.provenance import check_detection
 
     scan = load_scan(scan_path) if scan_path is not None else None
     if detection is not None:
         det = load_detection(detection)
+        det["_source"] = detection.name
+        size = (scan.width, scan.height) if scan is not None else None
+        for w in check_detection(det, camera_name=camera.name, scan_path=scan_path,
+                                 scan_size=size, force=force):
+            click.echo(w)
         if scan is not None:
             det["width"], det["height"] = scan.width, scan.height
-        made_with = det.get("camera")
-        if made_with and made_with != camera.name:
-            click.echo(f"warning: {detection.name} was measured with camera {made_with!r}, "
-                       f"correcting with {camera.name!r}", err=True)
         return det, scan
     click.echo(f"detecting marks in {scan_path.name} ...", err=True)
     det = detect_marks(scan, camera)
+    det["scan"] = fingerprint(scan_path)
     return det, scan
 
 
 def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel_size,
-           interpolation):
+           interpolation, force=False):
     from softplot.camera import load_camera
     from softplot.correction import (
         FilmCorrection,
@@ -151,7 +157,7 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
     if points is not None:
         names, xy = read_points_csv(points)  # read before the (slow) detection
     cam = load_camera(camera)
-    det, sc = _marks(scan_p, cam, Path(detection) if detection else None)
+    det, sc = _marks(scan_p, cam, Path(detection) if detection else None, force)
     fc = FilmCorrection.from_detection(cam, det, method)
     click.echo(fc.describe())
     if points is not None:
@@ -202,6 +208,9 @@ def _apply_options(f):
                      help="Resampled pixel size in micrometres (default: the scan's)."),
         click.option("--interpolation", type=click.Choice(["linear", "cubic", "nearest"]),
                      default="linear", show_default=True, help="Resampling interpolation."),
+        click.option("--force", is_flag=True,
+                     help="Apply a detection made on another scan or with another camera "
+                          "(refused otherwise; a warning is printed)."),
     ]
     for o in reversed(opts):
         f = o(f)
@@ -238,7 +247,9 @@ def resample_cmd(**kw) -> None:
               help="Only these methods (repeatable; default all).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False),
               help="Also write the table as JSON.")
-def compare_cmd(source, camera, detection, methods, json_out) -> None:
+@click.option("--force", is_flag=True,
+              help="Use a detection made on another scan or with another camera.")
+def compare_cmd(source, camera, detection, methods, json_out, force) -> None:
     """Cross-validate every method over the crosses (leave-one-out and checkerboard).
 
     SOURCE is a scan (marks detected, or --detection) or a detection JSON. Prints the RMS of
@@ -252,9 +263,9 @@ def compare_cmd(source, camera, detection, methods, json_out) -> None:
     if json_out is not None and Path(json_out).exists():
         raise SoftplotError(f"{json_out}: exists; refusing to overwrite")
     if src.suffix.lower() == ".json":
-        det, _ = _marks(None, cam, src)
+        det, _ = _marks(None, cam, src, force)
     else:
-        det, _ = _marks(src, cam, Path(detection) if detection else None)
+        det, _ = _marks(src, cam, Path(detection) if detection else None, force)
     marks = marks_from_detection(cam, det)
     cv = compare(cam, marks, list(methods) or None)
     click.echo(f"{src.name}: camera {cam.name}, {cv.n_marks} measured marks")

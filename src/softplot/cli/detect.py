@@ -47,7 +47,7 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
     Existing result files are never replaced without --overwrite.
     """
     from softplot.camera import load_camera
-    from softplot.io import load_scan
+    from softplot.io import fingerprint, load_scan
     from softplot.marks import detect
     from softplot.marks.micmac import micmac_name, write_measures_im
     from softplot.marks.qc import plot_qc
@@ -81,6 +81,7 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
             sc = load_scan(p)
             det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=float(rotate), scene=scene)
             doc = det.to_json()
+            doc["scan"] = fingerprint(p)  # the scan it was made on, checked where it is used
             if out_dir:
                 d = Path(out_dir)
                 d.mkdir(parents=True, exist_ok=True)

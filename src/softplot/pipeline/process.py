@@ -132,7 +132,7 @@ def process_scan(
         resample,
         write_resampled,
     )
-    from softplot.io import load_scan
+    from softplot.io import fingerprint, load_scan
     from softplot.marks import detect
     from softplot.pipeline.batch import write_json_atomic
 
@@ -148,6 +148,7 @@ def process_scan(
     det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=rotate, scene=scene)
     dj = det.to_json()
     dj["image"] = str(scan)
+    dj["scan"] = fingerprint(scan)  # the scan it was made on, checked where it is used
     marks = dj["marks"]
     counts = dj.get("counts", {})
     n_total = len(marks)

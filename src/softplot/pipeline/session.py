@@ -146,6 +146,9 @@ def scan_photo_map(scan_path, camera, detection=None, *, method: str = "mesh",
     else:
         det = load_detection(detection) if not isinstance(detection, dict) else detection
         where = det.get("_source", "the detection")
+        from softplot.provenance import check_camera
+
+        check_camera(det.get("camera"), cam.name, str(where))
         if isinstance(det.get("scan"), dict) and det["scan"].get("sha256"):
             check_fingerprint(sp, det["scan"], what=f"{where}")
         w, h = det.get("width"), det.get("height")
