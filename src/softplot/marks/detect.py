@@ -327,7 +327,22 @@ def detect(
 
         return detect_fiducials(sc, cam, name=name, dpi=dpi, polarity=polarity, rotate=rotate,
                                 blur_px=blur_px, rules=rules)
-    return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0, scene)
+    try:
+        return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0, scene)
+    except DetectionError as first:
+        if polarity == "auto":
+            raise
+        # a polarity given by the user that the scan contradicts: say so, in one line
+        other = "negative" if polarity == "positive" else "positive"
+        try:
+            det = _detect_reseau(sc, cam, name, dpi, other, rotate, blur_px, rules, t0, scene)
+        except DetectionError:
+            raise first from None
+        n = int(det.measured.sum())
+        raise DetectionError(
+            f"{name}: --polarity {polarity} contradicts the scan: no {polarity} crosses found, "
+            f"but {n} {other} ones ({'bright' if other == 'negative' else 'dark'} marks); "
+            f"give --polarity {other} or auto") from None
 
 
 def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
