@@ -340,7 +340,7 @@ def detect(
             raise first from None
         n = int(det.measured.sum())
         raise DetectionError(
-            f"{name}: --polarity {polarity} contradicts the scan: no {polarity} crosses found, "
+            f"{name}: --polarity {polarity} contradicts the scan: no {polarity} reseau crosses found, "
             f"but {n} {other} ones ({'bright' if other == 'negative' else 'dark'} marks); "
             f"give --polarity {other} or auto") from None
 
