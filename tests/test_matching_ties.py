@@ -139,3 +139,29 @@ def test_too_few_ties(scene, old_out):
                       "--out", str(old_out)])
     assert code == 2 and "too few ties" in text and "6" in text
     assert _unchanged(old_out) == before
+
+
+def test_relor_auto_sets_up_the_model(scene, tmp_path):
+    out = tmp_path / "ro.json"
+    code, text = run(["relor", "--auto", str(scene.scans[0]), str(scene.scans[1]), "--camera",
+                      "rollei-6006", "--ties", str(tmp_path / "ties"), "--json", str(out)])
+    assert code == 0, text
+    data = json.loads(out.read_text())
+    assert len(data["points"]) >= 100
+    # the same model as from the truth pixels of the same left points
+    from softplot.cli.match import load_pair
+    from softplot.correction import read_points_csv
+    from softplot.orientation.relative import relative_orientation
+
+    names, left_px = read_points_csv(tmp_path / "ties" / "left.csv")
+    truth, _ = true_right(scene, left_px)
+    _, _, maps = load_pair(*scene.scans, "rollei-6006", *scene.detections)
+    ref = relative_orientation(maps[0].pixel_to_photo(left_px), maps[1].pixel_to_photo(truth),
+                               scene.camera.c, bx=100.0, sigma=0.001)
+    assert abs(data["by"] - ref.value("by")) < 3 * data["std"]["by"]
+    assert abs(data["bz"] - ref.value("bz")) < 3 * data["std"]["bz"]
+
+
+def test_relor_needs_points_or_auto():
+    code, text = run(["relor", "--camera", "rollei-6006"])
+    assert code == 2 and "--auto" in text

@@ -84,3 +84,40 @@ def command(left, right, camera, detection_left, detection_right, out, max_ties,
         + ("" if min(g) > 0 else " (some Gruber areas empty)")
     )
     click.echo(f"wrote {out}")
+
+
+def auto_photo_ties(scans, camera, ties_dir=None):
+    """``softplot relor --auto``: match the two scans and write the ties as photo mm CSVs.
+
+    Returns the (left, right) CSV paths (name,x,y photo mm) in ``ties_dir`` (a temporary
+    folder, removed at exit, when None); the pixel ties (softplot match outputs) are kept
+    there too.
+    """
+    import atexit
+    import shutil
+    import tempfile
+
+    from softplot.matching.ties import _write_csv, check_outputs, match_pair
+
+    if len(scans) != 2:
+        raise SoftplotError(f"--auto needs the two scans LEFT RIGHT, got {len(scans)}")
+    if camera is None:
+        raise SoftplotError("--auto needs --camera (the film correction uses its marks)")
+    if ties_dir is None:
+        ties_dir = Path(tempfile.mkdtemp(prefix="softplot-ties-"))
+        atexit.register(shutil.rmtree, ties_dir, True)
+    ties_dir = Path(ties_dir)
+    names = ("left.csv", "right.csv", "ties.csv", "match.json", "left-photo.csv",
+             "right-photo.csv")
+    check_outputs([ties_dir / n for n in names], False)
+    cam, sc, maps = load_pair(scans[0], scans[1], camera)
+    res = match_pair(sc[0], sc[1], maps[0], maps[1])
+    res.write(ties_dir)
+    out = []
+    for side, xy in (("left", res.left_photo), ("right", res.right_photo)):
+        p = ties_dir / f"{side}-photo.csv"
+        _write_csv(p, ["name", "x", "y"], ([n, f"{x:.6f}", f"{y:.6f}"] for n, (x, y) in
+                                          zip(res.names, xy, strict=True)))
+        out.append(p)
+    click.echo(f"{res.n} automatic ties (residual y-parallax RMS {res.rms_px:.3f} px)")
+    return out[0], out[1]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 import numpy as np
 
@@ -10,7 +12,6 @@ from softplot.cli._orient import (
     ang_out,
     angles_option,
     camera_options,
-    input_option,
     json_option,
     read_table,
     report,
@@ -24,12 +25,17 @@ from softplot.orientation.relative import relative_orientation
 
 @click.command("relor")
 @camera_options
-@input_option(
-    "--left",
-    "left_path",
-    "CSV name,x,y: left photo coordinates, mm, reduced to the principal point.",
-)
-@input_option("--right", "right_path", "CSV name,x,y: right photo coordinates, mm.")
+@click.option("--left", "left_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV name,x,y: left photo coordinates, mm, reduced to the principal point.")
+@click.option("--right", "right_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="CSV name,x,y: right photo coordinates, mm.")
+# -- automatic model set-up (softplot match): relor --auto LEFT_SCAN RIGHT_SCAN --camera C
+@click.argument("scans", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--auto", is_flag=True,
+              help="Automatic: tie points matched in the two scans SCANS (detection, film "
+                   "correction, matching; softplot match) instead of --left/--right.")
+@click.option("--ties", "ties_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="With --auto: keep the tie points (softplot match outputs) in this folder.")
 @click.option(
     "--bx",
     type=float,
@@ -58,6 +64,9 @@ def command(
     alpha0,
     angle_unit,
     json_path,
+    scans=(),
+    auto=False,
+    ties_dir=None,
 ) -> None:
     """Relative orientation by the coplanarity condition, started from the essential matrix.
 
@@ -68,6 +77,12 @@ def command(
     flagged, angles_unit.
     """
     c = resolve_c(camera, principal_distance)
+    if auto:  # tie points from the scans, as photo mm CSVs
+        from softplot.cli.match import auto_photo_ties
+
+        left_path, right_path = auto_photo_ties(scans, camera, ties_dir)
+    elif scans or left_path is None or right_path is None:
+        raise SoftplotError("give --left and --right photo CSVs, or --auto LEFT RIGHT (scans)")
     L = read_table(left_path, ("name",), ("x", "y"), what="left points")
     R = read_table(right_path, ("name",), ("x", "y"), what="right points")
     ridx = {n: i for i, n in enumerate(R["name"])}
