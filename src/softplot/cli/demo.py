@@ -1,4 +1,4 @@
-"""``softplot demo``: the whole chain on a synthetic Rollei 6006 stereo pair (issue 8).
+"""``softplot demo``: the whole chain on a synthetic Rollei 6006 stereo pair.
 
 Renders two scans on the fly, detects the reseau, corrects the film, orients the pair,
 restitutes contours through the virtual motors and writes DXF, GeoJSON and an HTML report;

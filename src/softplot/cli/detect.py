@@ -41,7 +41,7 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
             overwrite):
     """Detect and measure the reseau crosses or fiducial marks of SCAN...
 
-    Prints one summary line per scan; the result JSON (keys of issue 3: image, camera, width,
+    Prints one summary line per scan; the result JSON (keys: image, camera, width,
     height, dpi, polarity, marks, transform, rms_px, warnings) goes to --json or --out-dir.
     A bad scan is reported in one line and the others are still processed (exit code 2).
     Existing result files are never replaced without --overwrite.

@@ -1,6 +1,6 @@
 """Collinearity equations: object points -> photo mm, analytic Jacobians, image rays.
 
-Convention (DESIGN.md, ``docs/orientation.md``): object/model frame right-handed, Z up;
+Convention (``docs/conventions.md``): object/model frame right-handed, Z up;
 photo frame x right, y up, z backward (the camera looks along -z), principal distance
 ``c > 0``; ``M = Mk @ Mp @ Mo`` from :mod:`softplot.geometry.rotation` rotates object axes into
 photo axes. With ``u = M @ (X - X0)``::

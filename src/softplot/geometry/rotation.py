@@ -1,6 +1,6 @@
 """Rotation matrices omega-phi-kappa (Wolf & Dewitt), their derivatives and angle units.
 
-Convention (``docs/orientation.md``, DESIGN.md): sequential rotations omega about x, phi about
+Convention (``docs/conventions.md``): sequential rotations omega about x, phi about
 y, kappa about z; the matrix
 
     M = Mk(kappa) @ Mp(phi) @ Mo(omega)

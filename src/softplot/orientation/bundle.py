@@ -1,6 +1,6 @@
 """Photogrammetric bundle adjustment with self-calibration on the sparse Schur LM engine.
 
-Frames (DESIGN.md): object right-handed, Z up (any consistent unit, "m" in reports); image
+Frames (docs/conventions.md): object right-handed, Z up (any consistent unit, "m" in reports); image
 observations are *film* mm (x right, y up, origin at the fiducial / reseau centre) of the
 measured points; rotations ``M = Mk Mp Mo`` object -> photo axes.
 
