@@ -248,6 +248,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         row=np.full(n, -1), col=np.full(n, -1), film=film, xy=xy,
         sigma=np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])),
         sigma_xy=np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1)),
+        cov=cov,
         score=score, cnr=cnr, status=status, reason=reason, transform=tr, rms_px=rms,
         residual=residual, warnings=warnings, dpi_source=dpi_source,
         timings={**timings, "total": time.perf_counter() - t0},

@@ -73,6 +73,9 @@ class Detection:
         The scene model under the crosses: "opening" (the grey opening's estimate) or "joint"
         (also estimated jointly with each cross, :mod:`softplot.marks.scene_tv`); fiducials
         always "opening".
+    cov : (N, 2, 2) float or None
+        Covariance of each centre (px^2, pixel system x, y), NaN when not measured: the
+        2 x 2 matrix, not only its diagonal (an arm measured alone is precise across it only).
     mark_geometry : dict or None
         The reseau crosses' size as measured on the scan (film mm):
         ``{"arm_length_mm", "line_width_mm", "spread": {...}, "n", "source"}``
@@ -105,6 +108,7 @@ class Detection:
     timings: dict = field(default_factory=dict)
     scene: str = "opening"
     mark_geometry: dict | None = None
+    cov: np.ndarray | None = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -143,6 +147,9 @@ class Detection:
                 "film_y": _num(self.film[i, 1], 6),
                 "sigma_x": _num(self.sigma_xy[i, 0], 5),
                 "sigma_y": _num(self.sigma_xy[i, 1], 5),
+                "cov": (None if self.cov is None or not np.isfinite(self.cov[i]).all()
+                        else [[_num(self.cov[i, 0, 0], 8), _num(self.cov[i, 0, 1], 8)],
+                              [_num(self.cov[i, 1, 0], 8), _num(self.cov[i, 1, 1], 8)]]),
                 "cnr": _num(self.cnr[i], 2),
                 "residual_x": _num(self.residual[i, 0], 4),
                 "residual_y": _num(self.residual[i, 1], 4),
