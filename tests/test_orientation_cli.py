@@ -88,7 +88,7 @@ def test_resect_camera_certificate(resection_files, tmp_path, capsys):
         [
             "resect",
             "--camera",
-            "rollei-6006",
+            "wild-rc10",
             "--image-points",
             pts,
             "--control",
@@ -99,7 +99,7 @@ def test_resect_camera_certificate(resection_files, tmp_path, capsys):
         capsys,
     )
     assert code == 0, err
-    assert json.loads(out.read_text())["principal_distance"] == load_camera("rollei-6006").c
+    assert json.loads(out.read_text())["principal_distance"] == load_camera("wild-rc10").c
 
 
 def test_intersect(tmp_path, capsys):

@@ -108,6 +108,20 @@ def principal_distance(camera: str | None, c: float | None) -> float:
     return float(c)
 
 
+def check_photo(xy, camera: str | None, c: float, what: str) -> None:
+    """Refuse photo coordinates (n, 2) that cannot be photo mm of this camera
+    (:func:`softplot.orientation.plausible.check_photo_coords`)."""
+    from softplot.orientation.plausible import check_photo_coords
+
+    fmt = name = None
+    if camera is not None:
+        from softplot.camera import load_camera
+
+        cam = load_camera(camera)
+        fmt, name = cam.format_mm, cam.name
+    check_photo_coords(xy, c, what=what, format_mm=fmt, camera=name or "")
+
+
 def read_table(
     path: Path,
     text: tuple[str, ...],

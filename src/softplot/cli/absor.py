@@ -61,6 +61,9 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
     model = np.c_[mod["x"], mod["y"], mod["z"]]
     obj = np.c_[gcp["X"], gcp["Y"], gcp["Z"]][gj]
     s = np.c_[gcp["sX"], gcp["sY"], gcp["sZ"]][gj]
+    from softplot.orientation.plausible import check_model_scale
+
+    check_model_scale(model[mi], obj, names, what=f"model {model_path} / control {gcp_path}")
     r = absolute_orientation(
         model[mi], obj, s if np.isfinite(s).any() else None, names=names, alpha0=alpha0
     )

@@ -73,6 +73,11 @@ def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -
     point = np.array([nidx[n] for n, k in zip(pts["name"], keep, strict=True) if k])
     photo = np.array([pidx[p] for p, k in zip(pts["photo"], keep, strict=True) if k])
     xy = np.c_[pts["x"], pts["y"]][keep]
+    from softplot.orientation.plausible import check_photo_coords
+
+    for k, pname in enumerate(ph["photo"]):
+        check_photo_coords(xy[photo == k], float(ph["c"][k]),
+                           what=f"image points {pts_path} (photo {pname})")
     X0 = np.c_[ph["X0"], ph["Y0"], ph["Z0"]]
     ang = np.c_[
         ang_in(ph["omega"], angle_unit),

@@ -13,6 +13,7 @@ from softplot.cli._orient import (
     angles_option,
     camera_options,
     json_option,
+    check_photo,
     read_table,
     report,
     sigma_image_option,
@@ -96,6 +97,8 @@ def command(
     ri = np.array([j for _, j in common])
     names = [L["name"][i] for i in li]
     mode = "independent" if independent else "dependent"
+    check_photo(np.c_[L["x"], L["y"]][li], camera, c, f"left points {left_path}")
+    check_photo(np.c_[R["x"], R["y"]][ri], camera, c, f"right points {right_path}")
     r = relative_orientation(
         np.c_[L["x"], L["y"]][li],
         np.c_[R["x"], R["y"]][ri],

@@ -12,6 +12,7 @@ from softplot.cli._orient import (
     camera_options,
     input_option,
     json_option,
+    check_photo,
     read_table,
     report,
     scale_angles,
@@ -64,6 +65,7 @@ def command(
     gp = np.array([j for _, j in common])
     names = [pts["name"][i] for i in ip]
     xy = np.c_[pts["x"][ip], pts["y"][ip]]
+    check_photo(xy, camera, c, f"image points {pts_path}")
     XYZ = np.c_[gcp["X"][gp], gcp["Y"][gp], gcp["Z"][gp]]
     sXYZ = np.c_[gcp["sX"][gp], gcp["sY"][gp], gcp["sZ"][gp]]
     r = resect(

@@ -111,6 +111,17 @@ def command(photos_path, mode, points_path, height, out_path, angle_unit="deg"):
         raise SoftplotError("--height is only used in contour mode")
     if not pnames:
         raise SoftplotError(f"points file {points_path} has no points")
+    from softplot.orientation.plausible import check_photo_coords
+
+    c1, c2 = float(ph[0, 6]), float(ph[1, 6])
+    where = f"points file {points_path}"
+    if mode in ("single", "contour"):
+        check_photo_coords(v[:, 0:2], c2, what=f"{where} (right photo)")
+    if mode == "single":
+        check_photo_coords(np.c_[v[:, 2], np.zeros(len(v))], c1, what=f"{where} (left photo)")
+    if mode == "free":
+        check_photo_coords(v[:, 0:2], c1, what=f"{where} (left photo)")
+        check_photo_coords(v[:, 2:4], c2, what=f"{where} (right photo)")
     if mode == "single":
         r = model.single_point(v[:, 0:2], v[:, 2])
     elif mode == "contour":
