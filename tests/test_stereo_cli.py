@@ -41,6 +41,18 @@ def _read(path):
     return rows, {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if k != "name"}
 
 
+#: photo coordinates and y-parallax are written to 0.1 um: at most half of that off
+PHOTO_TOL = 0.5e-4 + 1e-12
+
+
+def _half_unit(path, col):
+    """Half a unit of the last decimal written in column ``col`` (the rounding's bound)."""
+    rows = list(csv.DictReader(path.open()))
+    dec = {len(r[col].split(".")[1]) if "." in r[col] else 0 for r in rows}
+    assert len(dec) == 1, dec
+    return 0.5 * 10.0 ** -dec.pop() + 1e-12
+
+
 @pytest.fixture
 def pair(tmp_path):
     t = aerial_pair(seed=31, deform=False)
@@ -86,9 +98,9 @@ def test_single_mode(pair, tmp_path, capsys):
     assert code == 0, err
     rows, c = _read(tmp_path / "o.csv")
     assert list(rows[0]) == ["name", "x1", "y1", "x2", "y2", "X", "Y", "Z", "py"]
-    assert np.max(np.abs(c["y1"] - xy1[:, 1])) < 1e-9
-    assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) < 1e-6
-    assert np.max(np.abs(c["py"])) < 1e-9
+    assert np.max(np.abs(c["y1"] - xy1[:, 1])) <= PHOTO_TOL
+    assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) <= _half_unit(tmp_path / "o.csv", "X")
+    assert np.max(np.abs(c["py"])) <= PHOTO_TOL
 
 
 def test_contour_free_drive_to(pair, tmp_path, capsys):
@@ -119,8 +131,9 @@ def test_contour_free_drive_to(pair, tmp_path, capsys):
     )
     assert code == 0, err
     _, c = _read(tmp_path / "oc.csv")
-    assert np.max(np.abs(c["Z"] - H)) < 1e-6
-    assert np.max(np.hypot(c["X"] - C[:, 0], c["Y"] - C[:, 1])) < 1e-6
+    tol = _half_unit(tmp_path / "oc.csv", "X")
+    assert np.max(np.abs(c["Z"] - H)) <= tol
+    assert np.max(np.abs(np.c_[c["X"] - C[:, 0], c["Y"] - C[:, 1]])) <= tol
 
     P = t.sample_points(10, seed=4)
     xy1, xy2 = t.photo(0, P), t.photo(1, P)
@@ -146,7 +159,7 @@ def test_contour_free_drive_to(pair, tmp_path, capsys):
     )
     assert code == 0, err
     _, c = _read(tmp_path / "of.csv")
-    assert np.allclose(c["py"], 0.01, atol=1e-9)
+    assert np.allclose(c["py"], 0.01, rtol=0, atol=PHOTO_TOL)
     assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) < 1.0
 
     inp = _write(
@@ -170,7 +183,7 @@ def test_contour_free_drive_to(pair, tmp_path, capsys):
     )
     assert code == 0, err
     _, c = _read(tmp_path / "od.csv")
-    assert np.max(np.abs(np.c_[c["x2"], c["y2"]] - xy2)) < 1e-9
+    assert np.max(np.abs(np.c_[c["x2"], c["y2"]] - xy2)) <= PHOTO_TOL
 
 
 def test_bad_input_one_line_errors(pair, tmp_path, capsys):
@@ -205,3 +218,42 @@ def test_bad_input_one_line_errors(pair, tmp_path, capsys):
     assert code == 2 and "overwrite an input" in err and good.read_bytes() == before
     code, _, err = _contour(capsys, photos, good, tmp_path / "o.csv", height="5000")
     assert code == 2 and "behind the right camera" in err
+
+
+def test_free_mode_writes_precision_and_std(pair, tmp_path, capsys):
+    """Coordinates to the precision they have (a tenth of the smallest standard deviation),
+    with the standard deviations, which scale with --sigma-image; no 17-digit numbers."""
+    t, photos = pair
+    P = t.sample_points(8, seed=5)
+    xy1, xy2 = t.photo(0, P), t.photo(1, P)
+    inp = _write(tmp_path / "f.csv", ["name", "x1", "y1", "x2", "y2"],
+                 [[f"f{i}", *map(_f, np.r_[a, b])] for i, (a, b) in enumerate(zip(xy1, xy2,
+                                                                                   strict=True))])
+    stds = []
+    for sig in ("0.005", "0.0005"):
+        out = tmp_path / f"of-{sig}.csv"
+        code, _, err = _run(["restitute", "--photos", str(photos), "--mode", "free", "--points",
+                             str(inp), "--out", str(out), "--sigma-image", sig], capsys)
+        assert code == 0, err
+        rows, c = _read(out)
+        assert list(rows[0])[-3:] == ["sX", "sY", "sZ"]
+        s = np.c_[c["sX"], c["sY"], c["sZ"]]
+        assert np.all(s > 0)
+        dec = len(rows[0]["X"].split(".")[1])
+        # the last digit is at most a tenth of the smallest std, and not ten times finer
+        assert 10.0 ** -dec <= s.min() / 10 < 10.0 ** -(dec - 1)
+        assert all(len(r["x1"].split(".")[1]) == 4 for r in rows)
+        assert np.max(np.abs(np.c_[c["X"], c["Y"], c["Z"]] - P)) <= 0.5 * 10.0**-dec + 1e-12
+        stds.append(s)
+    assert np.allclose(stds[1], stds[0] / 10, rtol=0.02)
+
+
+def test_duplicate_point_names_refused(pair, tmp_path, capsys):
+    t, photos = pair
+    inp = _write(tmp_path / "d.csv", ["name", "X", "Y", "Z"],
+                 [["a", "1", "2", "3"], ["b", "1", "2", "3"], ["a", "4", "5", "6"]])
+    code, _, err = _run(["restitute", "--photos", str(photos), "--mode", "drive-to", "--points",
+                         str(inp), "--out", str(tmp_path / "o.csv")], capsys)
+    assert code == 2
+    assert "duplicate point name(s) a" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.csv").exists()

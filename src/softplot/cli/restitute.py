@@ -20,6 +20,18 @@ IN_COLUMNS = {
     "drive-to": ("name", "X", "Y", "Z"),
 }
 OUT_COLUMNS = ("name", "x1", "y1", "x2", "y2", "X", "Y", "Z", "py")
+#: photo coordinates and y-parallax are written to 0.1 micrometre
+PHOTO_DECIMALS = 4
+
+
+def object_decimals(std: np.ndarray) -> int:
+    """Decimals for object coordinates: the last digit a tenth of the smallest standard
+    deviation (object units), between 0 and 9."""
+    s = np.asarray(std, dtype=float)
+    s = s[np.isfinite(s) & (s > 0)]
+    if s.size == 0:
+        return 4
+    return int(np.clip(np.ceil(-np.log10(s.min() / 10)), 0, 9))
 
 
 def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
@@ -33,6 +45,16 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
     if not rows:
         raise SoftplotError(f"{what} {path} is empty")
     header = [h.strip() for h in rows[0]]
+    if "name" in header:
+        col = header.index("name")
+        seen, dup = set(), []
+        for r in rows[1:]:
+            nm = r[col].strip() if col < len(r) else ""
+            if nm in seen and nm not in dup:
+                dup.append(nm)
+            seen.add(nm)
+        if dup:
+            raise SoftplotError(f"{what} {path}: duplicate point name(s) {', '.join(dup[:5])}")
     missing = [c for c in columns if c not in header]
     if missing:
         raise SoftplotError(
@@ -84,9 +106,15 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
     "out_path",
     required=True,
     type=click.Path(path_type=Path),
-    help="Output CSV: name,x1,y1,x2,y2,X,Y,Z,py (py = residual y-parallax, mm).",
+    help="Output CSV: name,x1,y1,x2,y2,X,Y,Z,py (photo mm and py, the residual y-parallax, to "
+    "0.1 um; X, Y, Z to a tenth of their precision) and, in free mode, sX,sY,sZ (object units).",
 )
-def command(photos_path, mode, points_path, height, out_path, angle_unit="deg"):
+@click.option("--sigma-image", type=click.FloatRange(min=0, min_open=True), default=0.005,
+              show_default=True,
+              help="Standard error of a photo coordinate, mm: the precision of the points "
+              "(free mode's sX, sY, sZ) and the decimals written.")
+def command(photos_path, mode, points_path, height, out_path, angle_unit="deg",
+            sigma_image=0.005):
     """Restitute points of an oriented stereo pair in one of the four STEREOBIT modes."""
     from softplot.stereo.model import OrientedPhoto, StereoModel
 
@@ -127,19 +155,29 @@ def command(photos_path, mode, points_path, height, out_path, angle_unit="deg"):
     elif mode == "contour":
         r = model.contour(v[:, 0:2], height)
     elif mode == "free":
-        r = model.free(v[:, 0:2], v[:, 2:4])
+        r = model.free(v[:, 0:2], v[:, 2:4], sigma=sigma_image)
     else:
         r = model.drive_to(v)
     table = np.c_[r.xy1, r.xy2, r.XYZ, r.py]
+    # the precision of these points in this model: the intersection's standard deviations for
+    # photo coordinates of --sigma-image (free mode: written per point; other modes set the
+    # decimals only, their X, Y, Z follow from the carriage positions given)
+    prec = model.free(r.xy1, r.xy2, sigma=sigma_image).std if np.all(np.isfinite(table)) else None
+    std = r.std if mode == "free" else None
     if not np.all(np.isfinite(table)):
         bad = [pnames[i] for i in np.flatnonzero(~np.all(np.isfinite(table), axis=1))]
         raise SoftplotError(f"no solution for point(s) {', '.join(bad[:5])}")
     try:
         with out_path.open("w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(OUT_COLUMNS)
-            for nm, row in zip(pnames, table.tolist(), strict=True):
-                w.writerow([nm] + [repr(x) for x in row])
+            dec = object_decimals(prec if prec is not None else [])
+            w.writerow(OUT_COLUMNS + (("sX", "sY", "sZ") if std is not None else ()))
+            for i, (nm, row) in enumerate(zip(pnames, table.tolist(), strict=True)):
+                out = ([f"{x:.{PHOTO_DECIMALS}f}" for x in row[0:4]]
+                       + [f"{x:.{dec}f}" for x in row[4:7]] + [f"{row[7]:.{PHOTO_DECIMALS}f}"])
+                if std is not None:
+                    out += [f"{s:.{dec + 1}f}" for s in std[i]]
+                w.writerow([nm, *out])
     except OSError as exc:
         raise SoftplotError(f"cannot write {out_path}: {exc.strerror or exc}") from exc
     click.echo(f"{len(pnames)} point(s) restituted ({mode}) -> {out_path}")
