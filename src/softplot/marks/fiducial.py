@@ -120,6 +120,28 @@ def _match(film, cands, k_nom, theta0, scale_tol, sign):
     return best
 
 
+#: film mm: fiducials this close after a quarter turn of the layout are in each other's place
+SYMMETRY_TOL_MM = 0.2
+
+
+def layout_turns(fids) -> list[int]:
+    """The quarter turns (90, 180, 270 degrees) that map a fiducial layout onto itself: the
+    positions (within :data:`SYMMETRY_TOL_MM`) and the shapes. Under such a turn the scan
+    alone cannot tell the marks apart: their names rest on ``--rotate``."""
+    film = np.array([[f.x, f.y] for f in fids], float)
+    shapes = [(f.shape, round(f.size_mm, 3)) for f in fids]
+    out = []
+    for k in (1, 2, 3):
+        c, s_ = np.cos(k * np.pi / 2), np.sin(k * np.pi / 2)
+        turned = film @ np.array([[c, -s_], [s_, c]]).T
+        d = np.hypot(*(turned[:, None, :] - film[None, :, :]).transpose(2, 0, 1))
+        j = d.argmin(1)
+        if (d[np.arange(len(film)), j] <= SYMMETRY_TOL_MM).all() and len(set(j)) == len(j) \
+                and all(shapes[a] == shapes[b] for a, b in enumerate(j)):
+            out.append(90 * k)
+    return out
+
+
 def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) -> Detection:
     """Fiducial-mark detection (see the module docstring); same result type as reseau."""
     import time
@@ -239,6 +261,11 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
     residual = np.where(ok[:, None], r, np.nan)
     if ok.sum() < n:
         warnings.append(f"{n - int(ok.sum())} of {n} fiducials not measured")
+    turns = layout_turns(fids)
+    if turns:
+        warnings.append(
+            f"the fiducial layout looks the same turned by {' or '.join(map(str, turns))} "
+            "degrees: the marks' names rest on --rotate")
     tr = _transform_json(Hm, rms, int(ok.sum()))
     tr["kind"] = kind
     return Detection(

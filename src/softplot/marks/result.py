@@ -126,7 +126,9 @@ class Detection:
         return (f"{self.image}: {m}/{len(self)} marks measured, {miss} missing, {rej} rejected; "
                 f"rms {self.rms_px:.3f} px against the {self.transform.get('kind', '?')} model; "
                 f"{self.polarity}, {self.dpi:.1f} dpi ({self.dpi_source})"
-                + ("; scene estimated jointly with the crosses" if self.scene == "joint" else ""))
+                + ("; scene estimated jointly with the crosses" if self.scene == "joint" else "")
+                + ("; names rest on --rotate" if any("rest on --rotate" in w
+                                                    for w in self.warnings) else ""))
 
     def to_json(self) -> dict:
         """The issue-3 JSON document (a dict ready for ``json.dump``)."""
