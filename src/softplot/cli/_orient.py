@@ -68,8 +68,25 @@ def alpha_option(f):
 
 
 def sigma_image_option(help: str = "Standard error of the photo coordinates, mm."):  # noqa: A002
-    """The ``--sigma-image MM`` option (default 0.005 mm) with the given help text."""
-    return click.option("--sigma-image", type=float, default=0.005, show_default=True, help=help)
+    """The ``--sigma-image MM`` option with the given help text. Not given (None): the photo
+    coordinates are weighted with 0.005 mm but their precision is not known, so data snooping
+    tests against the a posteriori sigma0 (Pope's tau test); given: Baarda's w-test."""
+    return click.option(
+        "--sigma-image", type=float, default=None,
+        help=help + " Given: blunders are tested against it (Baarda's w-test); not given: "
+        "weights of 0.005 mm and Pope's tau test against the a posteriori sigma0.",
+    )
+
+
+#: photo-coordinate weight when --sigma-image is not given, mm
+DEFAULT_SIGMA_IMAGE = 0.005
+
+
+def snooping_out(result) -> tuple[dict, dict]:
+    """(JSON keys ``blunders``, ``snooping_test``; the ``snooping`` argument of
+    :func:`report`) of an orientation result with ``snooping_json()``."""
+    sj = result.snooping_json()
+    return sj, {"describe": result.adjustment.snooping.describe(), "blunders": sj["blunders"]}
 
 
 def finite_or_none(v):
@@ -281,6 +298,7 @@ def report(
     alpha0: float = 0.001,
     w_start: int | None = None,
     notes: list[str] | None = None,
+    snooping: dict | None = None,
 ) -> str:
     """The certificate-like report.
 
@@ -308,6 +326,9 @@ def report(
         Index of the first standardised-residual column of ``table`` values (to name the
         largest |w|).
     notes : list of str
+    snooping : dict, optional
+        ``{"describe": one line naming the test, "blunders": names, most likely first}``
+        (from the adjustment's :class:`softplot.adjust.Snooping`); replaces the w-test legend.
     """
     bar = "=" * 72
     out = [bar, f"{title}".ljust(52) + f"softplot {__version__}".rjust(20), bar]
@@ -334,7 +355,14 @@ def report(
             )
         flagged = [t[0] for t in table if t[2]]
         out.append("")
-        if k is not None:
+        if snooping is not None:
+            bl = snooping["blunders"]
+            out.append(f"data snooping ({snooping['describe']}): "
+                       + (", ".join(bl) if bl else "no blunder flagged"))
+            if bl:
+                out.append(f"most likely blunder: {bl[0]} - remove it and adjust again "
+                           "(a blunder also raises the statistic of its neighbours)")
+        elif k is not None:
             out.append(
                 f"data snooping (Baarda, alpha0 = {alpha0:g}, |w| > {k:.2f}): "
                 + (", ".join(flagged) if flagged else "no blunder flagged")

@@ -14,6 +14,7 @@ from softplot.cli._orient import (
     json_option,
     read_table,
     report,
+    snooping_out,
     write_json,
 )
 from softplot.errors import SoftplotError
@@ -96,6 +97,8 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
         ],
         angles_unit=angle_unit,
     )
+    sj, snoop = snooping_out(r)
+    data.update(sj)
     write_json(json_path, data, [model_path, gcp_path])
     units = ["", angle_unit, angle_unit, angle_unit, "", "", ""]
     dec = [8, 5, 5, 5, 4, 4, 4]
@@ -121,6 +124,7 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
                 )
             ],
             k=r.adjustment.critical_value,
+            snooping=snoop,
             alpha0=alpha0,
             w_start=3,
             notes=notes,

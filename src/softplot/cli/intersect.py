@@ -7,6 +7,7 @@ import numpy as np
 
 from softplot.adjust import critical_value
 from softplot.cli._orient import (
+    DEFAULT_SIGMA_IMAGE,
     alpha_option,
     ang_in,
     angles_option,
@@ -91,11 +92,13 @@ def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -
         X0,
         ang,
         ph["c"],
-        sigma=sigma_image,
+        sigma=sigma_image or DEFAULT_SIGMA_IMAGE,
         n_points=len(names),
         point_names=names,
         alpha0=alpha0,
+        precision_known=sigma_image is not None,
     )
+    sj = r.snooping_json()
     data = {
         "points": [
             {
@@ -115,6 +118,7 @@ def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -
         "sigma0": r.sigma0_pooled,
         "redundancy": int(r.redundancy.sum()),
         "skipped": skipped,
+        **sj,
     }
     write_json(json_path, data, [photos_path, pts_path])
     notes = [f"points in one photo only (skipped): {', '.join(skipped)}"] if skipped else []
@@ -123,7 +127,7 @@ def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -
             "SPACE INTERSECTION",
             [
                 f"photos {len(ph['photo'])}    points {len(names)}    "
-                f"photo sigma {sigma_image:g} mm",
+                "photo sigma " + (f"{sigma_image:g} mm" if sigma_image else "not given"),
                 "covariance scaled by the pooled sigma0 of all points",
             ],
             [],
@@ -141,5 +145,6 @@ def command(photos_path, pts_path, sigma_image, alpha0, angle_unit, json_path) -
             k=critical_value(alpha0),
             alpha0=alpha0,
             notes=notes,
+            snooping={"describe": r.snooping.describe(), "blunders": sj["blunders"]},
         )
     )

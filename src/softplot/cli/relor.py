@@ -8,6 +8,7 @@ import click
 import numpy as np
 
 from softplot.cli._orient import (
+    DEFAULT_SIGMA_IMAGE,
     alpha_option,
     ang_out,
     angles_option,
@@ -17,6 +18,7 @@ from softplot.cli._orient import (
     read_table,
     report,
     sigma_image_option,
+    snooping_out,
     write_json,
 )
 from softplot.cli._orient import principal_distance as resolve_c
@@ -105,10 +107,12 @@ def command(
         c,
         bx=bx,
         mode=mode,
-        sigma=sigma_image,
+        sigma=sigma_image or DEFAULT_SIGMA_IMAGE,
         names=names,
         alpha0=alpha0,
+        precision_known=sigma_image is not None,
     )
+    sj, snoop = snooping_out(r)
     std = r.std
     a2 = [ang_out(v, angle_unit) for v in r.angles2]
     data = {
@@ -141,6 +145,7 @@ def command(
     data.update(
         mode=mode,
         flagged=[n for n, f in zip(names, r.flagged, strict=True) if f],
+        **sj,
         angles_unit=angle_unit,
         principal_distance=c,
     )
@@ -165,7 +170,7 @@ def command(
             f"RELATIVE ORIENTATION ({mode})",
             [
                 f"principal distance c = {c:.4f} mm    points {len(names)}    bx = {bx:g} (fixed)"
-                f"    photo sigma {sigma_image:g} mm"
+                f"    photo sigma " + (f"{sigma_image:g} mm" if sigma_image else "not given")
             ],
             params,
             r.sigma0,
@@ -180,6 +185,7 @@ def command(
                 )
             ],
             k=r.adjustment.critical_value,
+            snooping=snoop,
             alpha0=alpha0,
             w_start=4,
             notes=[

@@ -6,6 +6,7 @@ import click
 import numpy as np
 
 from softplot.cli._orient import (
+    DEFAULT_SIGMA_IMAGE,
     alpha_option,
     ang_out,
     angles_option,
@@ -17,6 +18,7 @@ from softplot.cli._orient import (
     report,
     scale_angles,
     sigma_image_option,
+    snooping_out,
     write_json,
 )
 from softplot.cli._orient import principal_distance as resolve_c
@@ -72,11 +74,13 @@ def command(
         xy,
         XYZ,
         c,
-        sigma_xy=sigma_image,
+        sigma_xy=sigma_image or DEFAULT_SIGMA_IMAGE,
         sigma_XYZ=sXYZ if np.isfinite(sXYZ).any() else None,
         names=names,
         alpha0=alpha0,
+        precision_known=sigma_image is not None,
     )
+    sj, snoop = snooping_out(r)
     is_ang = [False, False, False, True, True, True]
     vals = [*r.X0.tolist(), *[ang_out(a, angle_unit) for a in r.angles]]
     stds = [*r.std[:3].tolist(), *[ang_out(s, angle_unit) for s in r.std[3:6]]]
@@ -91,6 +95,7 @@ def command(
             for n, v in zip(names, r.residuals, strict=True)
         ],
         flagged=[n for n, f in zip(names, r.flagged, strict=True) if f],
+        **sj,
         angles_unit=angle_unit,
         principal_distance=c,
         ambiguous=r.ambiguous,
@@ -109,7 +114,7 @@ def command(
             "SPACE RESECTION",
             [
                 f"principal distance c = {c:.4f} mm    control points {len(names)}    "
-                f"photo sigma {sigma_image:g} mm"
+                f"photo sigma " + (f"{sigma_image:g} mm" if sigma_image else "not given")
             ],
             [
                 ("X0", "", vals[0], stds[0], 4),
@@ -131,6 +136,7 @@ def command(
                 )
             ],
             k=r.adjustment.critical_value,
+            snooping=snoop,
             alpha0=alpha0,
             w_start=2,
             notes=notes,

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softplot.adjust import Adjustment, least_squares
+from softplot.adjust import Adjustment, least_squares, snooping_json
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
 from softplot.orientation._adjusted import AdjustedResult
@@ -116,6 +116,12 @@ class AbsoluteOrientation(AdjustedResult):
     standardized: np.ndarray
     flagged: np.ndarray
     names: tuple
+    #: the control point name of every observation of the adjustment (for ``blunders``)
+    obs_labels: tuple = ()
+
+    def snooping_json(self) -> dict:
+        """``{"blunders": [point names, most likely first], "snooping_test": {...}}``."""
+        return snooping_json(self.adjustment.snooping, list(self.obs_labels) or None)
 
     @property
     def scale(self) -> float:
@@ -247,6 +253,7 @@ def absolute_orientation(
         sigma0_prior=sigma0_prior,
         alpha0=alpha0,
         what="absolute orientation",
+        precision_known=sigma is not None,
     )
     xs = adj.x.copy()
     R = rotation_matrix(*xs[1:4]).T
@@ -272,4 +279,5 @@ def absolute_orientation(
         standardized=wst,
         flagged=fl.any(axis=1),
         names=names,
+        obs_labels=tuple(np.repeat(np.asarray(names, dtype=object), 3)[idx]),
     )

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softplot.adjust import UndeterminedError, critical_value
+from softplot.adjust import Snooping, UndeterminedError, data_snooping, snooping_json
 from softplot.errors import SoftplotError
 from softplot.geometry.collinearity import camera_coordinates, image_rays
 from softplot.geometry.rotation import rotation_matrix
@@ -72,6 +72,14 @@ class Intersection:
     standardized: np.ndarray
     flagged: np.ndarray
     iterations: int
+    #: data snooping over every photo coordinate (w-test or tau test, pooled redundancy)
+    snooping: Snooping | None = None
+    #: the point name of every photo coordinate (K*2), for ``blunders``
+    obs_labels: tuple = ()
+
+    def snooping_json(self) -> dict:
+        """``{"blunders": [point names, most likely first], "snooping_test": {...}}``."""
+        return snooping_json(self.snooping, list(self.obs_labels) or None)
 
     @property
     def std(self) -> np.ndarray:
@@ -174,6 +182,7 @@ def intersect(
     alpha0: float = 0.001,
     max_iter: int = 20,
     tol: float = 1e-12,
+    precision_known: bool = True,
 ) -> Intersection:
     """Intersect rays of oriented photos (least squares, vectorised over points).
 
@@ -201,6 +210,10 @@ def intersect(
         Which sigma0 scales the reported covariance.
     alpha0 : float
         Significance level of data snooping.
+    precision_known : bool
+        Whether ``sigma`` states the photo coordinates' precision: Baarda's w-test against it;
+        else Pope's tau test against the pooled a posteriori sigma0 (redundancy summed over the
+        points).
     max_iter : int
     tol : float
         Convergence when every coordinate step is below ``tol`` times the coordinate magnitude
@@ -322,10 +335,10 @@ def intersect(
     h = np.einsum("kai,kai->ka", np.matmul(Jx, Q[point]), Jx)
     qvv = np.clip(1.0 / p - h, 0.0, None)
     ri = p * qvv
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(ri > 1e-8, v / (s_prior * np.sqrt(qvv)), np.nan)
-    k = critical_value(alpha0)
-    fl_obs = np.abs(np.nan_to_num(w)) > k
+    sn = data_snooping(v.ravel(), qvv.ravel(), p.ravel(), int(r.sum()),
+                       sigma0_prior=s_prior if precision_known else None, alpha0=alpha0)
+    w = np.where(ri > 1e-8, sn.statistic.reshape(-1, 2), np.nan)
+    fl_obs = sn.flagged.reshape(-1, 2)
     flagged = np.bincount(point, weights=fl_obs.any(axis=1).astype(float), minlength=P) > 0
     rms = np.sqrt(np.bincount(point, weights=np.sum(v**2, axis=1), minlength=P) / (2 * nr))
     return Intersection(
@@ -341,6 +354,8 @@ def intersect(
         standardized=w,
         flagged=flagged,
         iterations=it,
+        snooping=sn,
+        obs_labels=tuple(np.repeat(np.asarray(names, dtype=object)[point], 2)),
     )
 
 

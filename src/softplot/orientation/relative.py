@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 import scipy.sparse
 
-from softplot.adjust import Adjustment, UndeterminedError, gauss_helmert
+from softplot.adjust import Adjustment, UndeterminedError, gauss_helmert, snooping_json
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import angles_from_matrix, rotation_derivatives, rotation_matrix
 from softplot.orientation._adjusted import AdjustedResult
@@ -237,6 +237,11 @@ class RelativeOrientation(AdjustedResult):
     x0: float
     y0: float
 
+    def snooping_json(self) -> dict:
+        """``{"blunders": [point names, most likely first], "snooping_test": {...}}``."""
+        labels = np.repeat(np.asarray(self.names, dtype=object), 4)
+        return snooping_json(self.adjustment.snooping, list(labels))
+
     def value(self, name: str) -> float:
         return float(self.params[PARAMS.index(name)])
 
@@ -296,6 +301,7 @@ def relative_orientation(
     names=None,
     start=None,
     alpha0: float = 0.001,
+    precision_known: bool = True,
 ) -> RelativeOrientation:
     """Relative orientation of two photos by the coplanarity condition (Gauss-Helmert).
 
@@ -316,6 +322,10 @@ def relative_orientation(
     start : array_like (9,), optional
         Initial :data:`PARAMS` (skips the essential-matrix start).
     alpha0 : float
+        Significance level of data snooping.
+    precision_known : bool
+        Whether ``sigma`` states the photo coordinates' precision (Baarda's w-test) or only
+        weights them (Pope's tau test against the a posteriori sigma0).
 
     Returns
     -------
@@ -417,6 +427,7 @@ def relative_orientation(
                 fixed=fixed,
                 alpha0=alpha0,
                 what=f"relative orientation ({mode})",
+                precision_known=precision_known,
             )
             x = adj.x
             pts = intersect_pair(

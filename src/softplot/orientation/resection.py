@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import scipy.optimize
 
-from softplot.adjust import Adjustment, least_squares
+from softplot.adjust import Adjustment, least_squares, snooping_json
 from softplot.errors import SoftplotError
 from softplot.geometry.collinearity import camera_coordinates, project, project_jacobian
 from softplot.geometry.rotation import angles_from_matrix, rotation_matrix
@@ -228,6 +228,12 @@ class Resection(AdjustedResult):
     names: tuple
     ambiguous: bool = False
     alternatives: list = field(default_factory=list)
+    #: the point name of every observation of the adjustment (for ``blunders``)
+    obs_labels: tuple = ()
+
+    def snooping_json(self) -> dict:
+        """``{"blunders": [point names, most likely first], "snooping_test": {...}}``."""
+        return snooping_json(self.adjustment.snooping, list(self.obs_labels) or None)
 
     @property
     def M(self) -> np.ndarray:
@@ -270,6 +276,7 @@ def resect(
     names=None,
     start=None,
     alpha0: float = 0.001,
+    precision_known: bool = True,
 ) -> Resection:
     """Space resection of one photo (closed-form / PnP start, then least squares).
 
@@ -294,6 +301,9 @@ def resect(
         Initial exterior orientation (skips the closed-form start).
     alpha0 : float
         Significance level of data snooping.
+    precision_known : bool
+        Whether ``sigma_xy`` states the photo coordinates' precision (Baarda's w-test) or only
+        weights them (Pope's tau test against the a posteriori sigma0).
 
     Returns
     -------
@@ -400,6 +410,7 @@ def resect(
         fixed=fixed,
         alpha0=alpha0,
         what="resection",
+        precision_known=precision_known,
     )
     xs = adj.x.copy()
     xs[:3] += origin
@@ -432,4 +443,6 @@ def resect(
         names=names,
         ambiguous=ambiguous,
         alternatives=alternatives,
+        obs_labels=tuple(np.repeat(np.asarray(names, dtype=object), 2))
+        + tuple(np.repeat(np.asarray(names, dtype=object)[wpts], 3)[ctrl_idx] if m else ()),
     )

@@ -1,0 +1,152 @@
+"""Blunder detection as the tour runs it: every adjustment's JSON names its ``blunders`` (most
+likely first) and its ``snooping_test``; without an a priori precision the test is Pope's tau
+against the a posteriori sigma0, which catches a 0.5 m control blunder that the w-test against
+an assumed 1 m missed."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from orientation_helpers import C, photo, stereo_pair
+from softplot.cli import main
+from softplot.orientation.absolute import transform
+
+
+def run(args, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(a) for a in args])
+    out = capsys.readouterr()
+    return e.value.code, out.out, out.err
+
+
+def write_csv(path, header, rows):
+    with open(path, "w") as fh:
+        fh.write(",".join(header) + "\n")
+        for r in rows:
+            fh.write(",".join(f"{v:.10f}" if isinstance(v, float) else str(v) for v in r) + "\n")
+    return path
+
+
+def _keys(d, test):
+    assert set(d["snooping_test"]) >= {"test", "critical_value", "alpha0", "sigma0"}
+    assert d["snooping_test"]["test"] == test
+    assert d["snooping_test"]["critical_value"] > 0
+    assert isinstance(d["blunders"], list)
+
+
+def _absor_files(tmp_path, blunder, sigma=None):
+    rng = np.random.default_rng(7)
+    truth = np.array([12.0, 0.01, -0.02, 0.4, 512000.0, 4987000.0, 300.0])
+    m = np.c_[rng.uniform(-40, 40, (10, 2)), rng.uniform(-2, 5, 10)]
+    obj = transform(truth, m) + rng.normal(0, 0.003, (10, 3))
+    obj[4, 2] += blunder
+    model = write_csv(tmp_path / "m.csv", ["name", "x", "y", "z"],
+                      [(f"p{i}", *p) for i, p in enumerate(m)])
+    if sigma is None:
+        gcp = write_csv(tmp_path / "g.csv", ["name", "X", "Y", "Z"],
+                        [(f"p{i}", *p) for i, p in enumerate(obj)])
+    else:
+        gcp = write_csv(tmp_path / "g.csv", ["name", "X", "Y", "Z", "sX", "sY", "sZ"],
+                        [(f"p{i}", *p, sigma, sigma, sigma) for i, p in enumerate(obj)])
+    return model, gcp
+
+
+def test_absor_tau_flags_half_a_metre(tmp_path, capsys):
+    model, gcp = _absor_files(tmp_path, 0.5)
+    out = tmp_path / "ao.json"
+    code, text, err = run(["absor", "--model", model, "--control", gcp, "--json", out], capsys)
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    _keys(d, "pope-tau")
+    assert d["blunders"][0] == "p4"
+    assert "tau" in text and "p4" in text
+    # the same control without the blunder: nothing flagged
+    model, gcp = _absor_files(tmp_path, 0.0)
+    out.unlink()
+    code, _, err = run(["absor", "--model", model, "--control", gcp, "--json", out], capsys)
+    d = json.loads(out.read_text())
+    _keys(d, "pope-tau")
+    assert d["blunders"] == []
+
+
+def test_absor_w_test_when_the_precision_is_given(tmp_path, capsys):
+    model, gcp = _absor_files(tmp_path, 0.05, sigma=0.003)
+    out = tmp_path / "ao.json"
+    code, _, err = run(["absor", "--model", model, "--control", gcp, "--json", out], capsys)
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    _keys(d, "baarda-w")
+    assert d["blunders"][0] == "p4"
+
+
+def test_resect_names_the_blunder(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-500, 500, (12, 2)), rng.uniform(0, 60, 12)]
+    xy = photo(X, np.array([20.0, -10.0, 1700.0]), np.radians([1.5, -2.0, 95.0]))
+    xy += rng.normal(0, 0.002, xy.shape)
+    xy[5, 0] += 0.04
+    pts = write_csv(tmp_path / "p.csv", ["name", "x", "y"],
+                    [(f"P{i}", *p) for i, p in enumerate(xy)])
+    gcp = write_csv(tmp_path / "g.csv", ["name", "X", "Y", "Z"],
+                    [(f"P{i}", *p) for i, p in enumerate(X)])
+    out = tmp_path / "eo.json"
+    code, _, err = run(["resect", "--principal-distance", C, "--image-points", pts,
+                        "--control", gcp, "--json", out], capsys)
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    _keys(d, "pope-tau")
+    assert d["blunders"][0] == "P5"
+    out.unlink()
+    code, _, err = run(["resect", "--principal-distance", C, "--image-points", pts,
+                        "--control", gcp, "--json", out, "--sigma-image", 0.002], capsys)
+    d = json.loads(out.read_text())
+    _keys(d, "baarda-w")
+    assert d["blunders"][0] == "P5"
+
+
+def test_relor_names_the_blunder(tmp_path, capsys):
+    rng = np.random.default_rng(4)
+    s = stereo_pair(rng, n=20)
+    xy1 = s["xy1"] + rng.normal(0, 0.002, s["xy1"].shape)
+    xy2 = s["xy2"] + rng.normal(0, 0.002, s["xy2"].shape)
+    xy2[7, 1] += 0.05  # a y-parallax blunder
+    left = write_csv(tmp_path / "l.csv", ["name", "x", "y"],
+                     [(f"p{i}", *p) for i, p in enumerate(xy1)])
+    right = write_csv(tmp_path / "r.csv", ["name", "x", "y"],
+                      [(f"p{i}", *p) for i, p in enumerate(xy2)])
+    out = tmp_path / "ro.json"
+    code, text, err = run(["relor", "--principal-distance", C, "--left", left, "--right", right,
+                           "--json", out], capsys)
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    _keys(d, "pope-tau")
+    assert d["blunders"][0] == "p7"
+    assert "most likely blunder: p7" in text
+
+
+def test_intersect_names_the_blunder(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    s = stereo_pair(rng, n=10)
+    C3, a3 = np.array([300.0, 400.0, 1520.0]), np.array([0.01, 0.02, 0.5])
+    xy3 = photo(s["X"], C3, a3)
+    obs = [s["xy1"], s["xy2"], xy3]
+    obs = [o + rng.normal(0, 0.002, o.shape) for o in obs]
+    obs[2][3, 0] += 0.05
+    photos = write_csv(
+        tmp_path / "photos.csv",
+        ["photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c"],
+        [("A", *s["C1"], *np.degrees(s["a1"]), C), ("B", *s["C2"], *np.degrees(s["a2"]), C),
+         ("D", *C3, *np.degrees(a3), C)],
+    )
+    rows = [(ph, f"p{i}", *p) for ph, o in zip("ABD", obs, strict=True) for i, p in enumerate(o)]
+    pts = write_csv(tmp_path / "pts.csv", ["photo", "name", "x", "y"], rows)
+    out = tmp_path / "xyz.json"
+    code, _, err = run(["intersect", "--photos", photos, "--image-points", pts, "--json", out],
+                       capsys)
+    assert code == 0, err
+    d = json.loads(out.read_text())
+    _keys(d, "pope-tau")
+    assert d["blunders"][0] == "p3"
