@@ -259,6 +259,28 @@ def write_json(path: Path | None, data: dict, inputs: list[Path]) -> None:
         raise SoftplotError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+def write_points_csv(path: Path | None, names, XYZ, inputs: list[Path], decimals: int = 6,
+                     flag: str = "--csv") -> None:
+    """Write model/object points as ``name,x,y,z`` (what ``absor --model`` reads), refusing to
+    overwrite one of the ``inputs``."""
+    if path is None:
+        return
+    import csv
+
+    path = Path(path)
+    for p in inputs:
+        if p is not None and Path(p).exists() and path.resolve() == Path(p).resolve():
+            raise SoftplotError(f"{flag} {path} would overwrite the input file {p}")
+    try:
+        with path.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["name", "x", "y", "z"])
+            for n, p in zip(names, np.asarray(XYZ, dtype=float).tolist(), strict=True):
+                w.writerow([n, *(f"{v:.{decimals}f}" for v in p)])
+    except OSError as exc:
+        raise SoftplotError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
 def ang_out(v, unit: str):
     """Radians -> output unit (float or list)."""
     a = from_radians(np.asarray(v, dtype=float), unit)
@@ -341,6 +363,9 @@ def report(
         out.append(f"{'parameter':<14}{'unit':<8}{'value':>22}{'std':>16}")
         out.append("-" * 60)
     for name, unit, val, std, dec in params:
+        # a standard deviation shows two significant digits (never "0.0000"); its value as many
+        if std is not None and np.isfinite(std) and std > 0:
+            dec = int(min(12, max(dec, np.ceil(-np.log10(std)) + 1)))
         out.append(f"{name:<14}{unit:<8}{fnum(val, dec):>22}{fnum(std, dec):>16}")
     if table:
         out.append("")

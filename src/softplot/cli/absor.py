@@ -100,7 +100,7 @@ def command(model_path, gcp_path, alpha0, angle_unit, json_path) -> None:
     sj, snoop = snooping_out(r)
     data.update(sj)
     write_json(json_path, data, [model_path, gcp_path])
-    units = ["", angle_unit, angle_unit, angle_unit, "", "", ""]
+    units = ["1", angle_unit, angle_unit, angle_unit, "object", "object", "object"]
     dec = [8, 5, 5, 5, 4, 4, 4]
     unused = [n for n in gcp["name"] if n not in midx]
     notes = [f"control points not in the model (ignored): {', '.join(unused)}"] if unused else []

@@ -20,6 +20,7 @@ from softplot.cli._orient import (
     sigma_image_option,
     snooping_out,
     write_json,
+    write_points_csv,
 )
 from softplot.cli._orient import principal_distance as resolve_c
 from softplot.errors import SoftplotError
@@ -56,6 +57,9 @@ from softplot.orientation.relative import relative_orientation
 @alpha_option
 @angles_option
 @json_option
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write the model points as name,x,y,z (model units), the file "
+              "`softplot absor --model` takes.")
 def command(
     camera,
     principal_distance,
@@ -68,6 +72,7 @@ def command(
     angle_unit,
     json_path,
     scans=(),
+    csv_path=None,
     auto=False,
     ties_dir=None,
 ) -> None:
@@ -150,6 +155,8 @@ def command(
         principal_distance=c,
     )
     write_json(json_path, data, [left_path, right_path])
+    write_points_csv(csv_path, names, r.points.XYZ, [left_path, right_path],
+                     decimals=int(max(0, np.ceil(6 - np.log10(abs(bx))))))
     au = angle_unit
     if independent:
         params = [
@@ -157,7 +164,8 @@ def command(
             ("kappa1", au, data["kappa1"], sd["kappa1"], 5),
         ]
     else:
-        params = [("by", "", data["by"], sd["by"], 4), ("bz", "", data["bz"], sd["bz"], 4)]
+        params = [("by", "model", data["by"], sd["by"], 4),
+                  ("bz", "model", data["bz"], sd["bz"], 4)]
     params += [
         ("omega2", au, a2[0], sd["omega"], 5),
         ("phi2", au, a2[1], sd["phi"], 5),

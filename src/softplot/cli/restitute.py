@@ -113,8 +113,11 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
               show_default=True,
               help="Standard error of a photo coordinate, mm: the precision of the points "
               "(free mode's sX, sY, sZ) and the decimals written.")
+@click.option("--check", "check_path", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="CSV name,X,Y,Z of check points (object units): print each "
+              "restituted point's difference from them and the RMS.")
 def command(photos_path, mode, points_path, height, out_path, angle_unit="deg",
-            sigma_image=0.005):
+            sigma_image=0.005, check_path=None):
     """Restitute points of an oriented stereo pair in one of the four STEREOBIT modes."""
     from softplot.stereo.model import OrientedPhoto, StereoModel
 
@@ -181,3 +184,25 @@ def command(photos_path, mode, points_path, height, out_path, angle_unit="deg",
     except OSError as exc:
         raise SoftplotError(f"cannot write {out_path}: {exc.strerror or exc}") from exc
     click.echo(f"{len(pnames)} point(s) restituted ({mode}) -> {out_path}")
+    if check_path is not None:
+        cnames, cv = _read_csv(Path(check_path), ("name", "X", "Y", "Z"), "check file")
+        click.echo(check_table(pnames, r.XYZ, cnames, cv, dec))
+
+
+def check_table(names, XYZ, check_names, check_XYZ, decimals: int) -> str:
+    """Differences restituted - check (object units) per common point, and their RMS."""
+    idx = {n: i for i, n in enumerate(check_names)}
+    common = [(i, idx[n]) for i, n in enumerate(names) if n in idx]
+    if not common:
+        raise SoftplotError("no restituted point has a name in the check file")
+    a = np.array([i for i, _ in common])
+    b = np.array([j for _, j in common])
+    d = np.asarray(XYZ, dtype=float)[a] - np.asarray(check_XYZ, dtype=float)[b]
+    w = max(8, max(len(names[i]) for i in a) + 2)
+    lines = [f"{'point':<{w}}{'dX':>12}{'dY':>12}{'dZ':>12}   (restituted - check)"]
+    for i, row in zip(a, d, strict=True):
+        lines.append(f"{names[i]:<{w}}" + "".join(f"{v:>12.{decimals}f}" for v in row))
+    rms = np.sqrt(np.mean(d**2, axis=0))
+    lines.append(f"{'RMS':<{w}}" + "".join(f"{v:>12.{decimals}f}" for v in rms)
+                 + f"   over {len(a)} check point(s)")
+    return "\n".join(lines)
