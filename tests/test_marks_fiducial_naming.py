@@ -25,3 +25,36 @@ def test_symmetric_layout_says_naming_rests_on_rotate():
     det = detect(scan_of(img, truth), "wild-rc10")
     assert any("rest on --rotate" in w for w in det.to_json()["warnings"])
     assert "names rest on --rotate" in det.summary()
+
+
+def _one_mark_camera():
+    import dataclasses
+
+    cam = load_camera("zeiss-umk-10-1318")
+    return dataclasses.replace(cam, fiducials=cam.fiducials[:1], name="one-mark")
+
+
+def test_a_single_fiducial_is_measured():
+    import numpy as np
+
+    from softplot.io import Scan
+    from softplot.synthetic import ScanSpec, render_scan
+
+    cam = _one_mark_camera()
+    img, truth = render_scan(cam, ScanSpec(dpi=400, rotation_deg=0.4), 3)
+    det = detect(Scan.from_array(img, dpi=400), cam)
+    t = {m["name"]: m for m in truth["marks"]}[det.name[0]]
+    assert det.status == ["measured"]
+    assert np.hypot(det.xy[0, 0] - t["x"], det.xy[0, 1] - t["y"]) < 0.1
+
+
+def test_a_single_fiducial_is_not_invented_on_noise():
+    import numpy as np
+    import pytest
+
+    from softplot.io import Scan
+    from softplot.marks.detect import DetectionError
+
+    noise = np.random.default_rng(1).integers(0, 255, (2000, 2000)).astype(np.uint8)
+    with pytest.raises(DetectionError):
+        detect(Scan.from_array(noise, dpi=400), _one_mark_camera())

@@ -117,6 +117,13 @@ def _match(film, cands, k_nom, theta0, scale_tol, sign):
                 key = (count, total)
                 if best is None or key > best[0]:
                     best = (key, pick, Lm, t, k[q], th)
+    if n == 1 and len(c_xy[0]):
+        # a single mark has no pattern: the best-scoring candidate where the certificate puts
+        # it (the measuring stage's acceptance tests then judge its shape)
+        j = int(np.argmax(c_sc[0]))
+        Lm = _film_to_pix_linear(k_nom, theta0)
+        best = ((1, float(c_sc[0][j])), np.array([j]), Lm, c_xy[0][j] - Lm @ film[0], k_nom,
+                theta0)
     return best
 
 
