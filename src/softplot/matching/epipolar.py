@@ -162,14 +162,42 @@ def epipolar_geometry(model, maps, sizes, pixel_mm: float | None = None) -> Epip
     return EpipolarGeometry(R, cn, p, rows, ytop / p, cols, col0, geo.C)
 
 
-def scan_maps(geo: EpipolarGeometry, k: int, photo, m, r0: int = 0, r1: int | None = None):
-    """(mapx, mapy) float32 (rows r0:r1 of normalised image k): scan pixel of each pixel."""
+#: spacing of the exactly computed map nodes, mm of the normalised image
+NODE_MM = 0.085
+
+
+def scan_maps(geo: EpipolarGeometry, k: int, photo, m, r0: int = 0, r1: int | None = None,
+              step: int | None = None):
+    """(mapx, mapy) float32 (rows r0:r1 of normalised image k): scan pixel of each pixel.
+
+    Exact (through the orientation and the film correction) on a grid of nodes every
+    ``step`` pixels (default: :data:`NODE_MM`), bilinear in between: the mapping is smooth at
+    that scale (the film correction's cells are millimetres), and this is what keeps huge
+    scans fast. On the 600 dpi test pair the interpolation differs from the exact map by
+    less than 0.003 px (99 %) inside the reseau; up to 0.2 px at the discontinuities of a
+    mesh correction beyond the outer crosses. ``step=1`` computes every pixel exactly.
+    """
     r1 = geo.rows if r1 is None else r1
-    cc, rr = np.meshgrid(np.arange(geo.cols[k], dtype=float), np.arange(r0, r1, dtype=float))
+    if step is None:
+        step = max(1, int(round(NODE_MM / geo.pixel_mm)))
+    w = geo.cols[k]
+    nr = (r1 - 1 - r0) // step + 2
+    nc = (w - 1) // step + 2
+    cc, rr = np.meshgrid(np.arange(nc, dtype=float) * step,
+                         r0 + np.arange(nr, dtype=float) * step)
     xy_n = geo.to_normalised_mm(k, np.c_[cc.ravel(), rr.ravel()])
     px = m.photo_to_pixel(_photo_of(photo, xy_n, geo))
-    shape = (r1 - r0, geo.cols[k])
-    return px[:, 0].reshape(shape).astype(np.float32), px[:, 1].reshape(shape).astype(np.float32)
+    gx = px[:, 0].reshape(nr, nc).astype(np.float32)
+    gy = px[:, 1].reshape(nr, nc).astype(np.float32)
+    if step == 1:
+        return gx[: r1 - r0, :w].copy(), gy[: r1 - r0, :w].copy()
+    fx = np.broadcast_to((np.arange(w, dtype=np.float32) / step)[None, :], (r1 - r0, w))
+    fy = np.broadcast_to((np.arange(r1 - r0, dtype=np.float32) / step)[:, None], (r1 - r0, w))
+    fx, fy = np.ascontiguousarray(fx), np.ascontiguousarray(fy)
+    # bilinear in float64 precision: remap of the residual from a plane would be finer, but
+    # float32 node values at this size are already at the 1e-3 px level
+    return (cv2.remap(gx, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+            cv2.remap(gy, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
 def resample_pair(model, maps, images, pixel_mm: float | None = None, keep_maps: bool = True,
