@@ -109,3 +109,62 @@ def test_demo_writes_a_session_ready_to_view(demo):
         assert np.max(np.abs(res.XYZ - XYZ)) < 1e-6
     finally:
         s.close()
+
+
+def test_demo_report_shows_the_film(demo):
+    """The report holds the scans (thumbnails with crosses), the contours over the left scan,
+    the check points with their RMS and the orientation with standard deviations and units."""
+    import re
+
+    out, r = demo
+    html = (out / "report.html").read_text()
+    # thumbnails of both scans, contours over the left scan and in plan, detection scatter
+    assert html.count("data:image/png;base64,") == 5
+    assert "left scan (thumbnail" in html and "right scan (thumbnail" in html
+    assert "contours over the left scan" in html
+    # an RMS row under the check points, equal to the demo's figures
+    rms = re.search(r"<td>RMS</td>((?:<td>[^<]*</td>){3})", html)
+    assert rms is not None
+    got = [float(v) for v in re.findall(r"<td>([^<]*)</td>", rms.group(1))]
+    assert np.allclose(got, r.check_rms_m, rtol=1e-3)
+    # the orientation table: value, std, unit for every parameter (5 relative + 7 absolute)
+    rows = re.findall(r"<tr><td>(relative|absolute)</td><td>(\w+)</td><td>([^<]*)</td>"
+                      r"<td>([^<]*)</td><td>([^<]*)</td></tr>", html)
+    assert len(rows) == 12
+    assert all(float(sd) > 0 and unit for *_, sd, unit in rows)
+    assert {unit for *_, unit in rows} >= {"deg", "m"}
+    assert "softplot 0." in html and "UTC" in html
+
+
+def test_report_figures_and_rows():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from softplot.pipeline.demo import (
+        _check_rows, _detection_figure, _scan_figure, _value_std_text)
+
+    rows = _check_rows([[3.0, 1.0, 0.0], [-4.0, -1.0, 2.0]])
+    assert rows[-1][0] == "RMS"
+    assert np.allclose(rows[-1][1:], [np.sqrt(12.5), 1.0, np.sqrt(2.0)])
+    assert _value_std_text(123.45678, 0.0123) == ("123.457", "0.012")
+    assert _value_std_text(0.5, 2.6) == ("0.5", "2.6")
+    # a scan with measured, missing and rejected crosses: all three drawn and named
+    marks = [{"name": "a", "x": 10.0, "y": 10.0, "status": "measured"},
+             {"name": "b", "x": 50.0, "y": 10.0, "status": "measured"},
+             {"name": "c", "x": 10.0, "y": 50.0, "status": "rejected"},
+             {"name": "d", "x": 50.0, "y": 50.0, "status": "missing"}]
+    scan = {"image": np.zeros((64, 64), np.uint16), "det": {"marks": marks},
+            "d": np.array([[0.01, -0.02], [0.03, 0.0]])}
+    fig = _scan_figure(plt, scan, "left")
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["measured (2)", "missing (1)", "rejected (1)"]
+    # detection scatter: both panels on one scale, equal axes
+    scan2 = {**scan, "d": np.array([[0.2, 0.1], [-0.1, 0.0]])}
+    fig = _detection_figure(plt, [scan, scan2])
+    a, b = fig.axes
+    assert a.get_xlim() == b.get_xlim() == a.get_ylim() == b.get_ylim()
+    assert a.get_xlim()[1] >= 0.2
+    assert a.get_aspect() == b.get_aspect() == 1.0
+    plt.close("all")

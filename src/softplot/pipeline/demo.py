@@ -623,17 +623,131 @@ def _write_points(out_dir: Path, pts, scans, true_pixel, measured_photo, stereo)
     return o
 
 
+def _check_rows(chk_err) -> list[list]:
+    """Rows of the check-point table (dX, dY, dZ object m) and an RMS row under them."""
+    e = np.asarray(chk_err, float).reshape(-1, 3)
+    rows = [[f"K{i + 1}", *map(float, r)] for i, r in enumerate(e)]
+    rows.append(["RMS", *(_rms(e[:, j]) for j in range(3))])
+    return rows
+
+
+def _orientation_rows(ro, ao) -> list[list]:
+    """Rows ``[step, parameter, value, std, unit]`` of the relative orientation's free
+    parameters (model units, degrees) and the absolute orientation's seven (scale, degrees,
+    object m); the standard deviations are the adjustments' a posteriori ones."""
+    rows = []
+    for name in ro.free:
+        v, s = ro.value(name), ro.std[name]
+        if name.startswith("b"):
+            rows.append(["relative", name, v, s, "model (bx = 1)"])
+        else:
+            rows.append(["relative", name, float(np.rad2deg(v)), float(np.rad2deg(s)), "deg"])
+    for k, name in enumerate(("scale", "omega", "phi", "kappa", "TX", "TY", "TZ")):
+        v, s = float(ao.params[k]), float(ao.std[k])
+        if name in ("omega", "phi", "kappa"):
+            rows.append(["absolute", name, float(np.rad2deg(v)), float(np.rad2deg(s)), "deg"])
+        else:
+            rows.append(["absolute", name, v, s, "m per model unit" if k == 0 else "m"])
+    return rows
+
+
+def _value_std_text(value: float, std: float) -> tuple[str, str]:
+    """A value and its standard deviation as text: the std to two significant digits and
+    the value to the same decimal place."""
+    if not (np.isfinite(std) and std > 0):
+        return f"{value:.6g}", "" if not np.isfinite(std) else "0"
+    dec = max(0, 1 - int(np.floor(np.log10(std))))
+    return f"{value:.{dec}f}", f"{std:.{dec}f}"
+
+
+def _thumbnail(image, width: int = 640):
+    """Every ``step``-th pixel of ``image`` (about ``width`` wide) and the step."""
+    step = max(1, int(np.ceil(image.shape[1] / width)))
+    return image[::step, ::step], step
+
+
+def _scan_figure(plt, scan: dict, side: str):
+    """Thumbnail of a scan with its crosses: measured (green +), missing and rejected (red)."""
+    thumb, step = _thumbnail(scan["image"])
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    ax.imshow(thumb, cmap="gray", extent=(-0.5, thumb.shape[1] * step - 0.5,
+                                          thumb.shape[0] * step - 0.5, -0.5))
+    marks = scan["det"]["marks"]
+    styles = {"measured": ("+", "lime", 7), "missing": ("o", "red", 9),
+              "rejected": ("x", "red", 9)}
+    for status, (mk, col, ms) in styles.items():
+        xy = np.array([[m["x"], m["y"]] for m in marks if m.get("status") == status
+                       and m.get("x") is not None and np.isfinite(m["x"])], float)
+        n = sum(m.get("status") == status for m in marks)
+        if len(xy):
+            ax.plot(xy[:, 0], xy[:, 1], mk, color=col, ms=ms, mfc="none",
+                    label=f"{status} ({n})")
+        elif n:
+            ax.plot([], [], mk, color=col, label=f"{status} ({n}, no position)")
+    ax.set_xlabel("x px")
+    ax.set_ylabel("y px")
+    ax.set_title(f"{side} scan")
+    ax.legend(loc="upper right", fontsize=7)
+    return fig
+
+
+def _contour_image_figure(plt, scan: dict, photo, feats):
+    """The contours over the left scan: object vertices through the estimated orientation
+    (``photo.project``: object m -> photo mm) and the film correction (photo mm -> pixel),
+    labelled with their heights in m."""
+    thumb, step = _thumbnail(scan["image"], 900)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    ax.imshow(thumb, cmap="gray", extent=(-0.5, thumb.shape[1] * step - 0.5,
+                                          thumb.shape[0] * step - 0.5, -0.5))
+    for f in feats:
+        v = np.asarray(f.vertices, float)
+        if f.closed:
+            v = np.vstack([v, v[:1]])
+        px = scan["fc"].to_pixel(photo.project(v), frm="photo")[0]
+        ax.plot(px[:, 0], px[:, 1], "-", color="orange", lw=1.0)
+        j = int(np.argmin(px[:, 1]))
+        ax.annotate(f"{f.height:g} m", px[j], color="orange", fontsize=8,
+                    ha="center", va="bottom")
+    ax.set_xlabel("x px")
+    ax.set_ylabel("y px")
+    return fig
+
+
+def _detection_figure(plt, scans):
+    """Detected minus true cross positions of both scans, equal axes on one common scale."""
+    fig, axs = plt.subplots(1, 2, figsize=(9, 4.5), sharex=True, sharey=True)
+    lim = max([float(np.max(np.abs(s["d"]))) for s in scans if len(s["d"])] + [1e-3]) * 1.1
+    for k, s in enumerate(scans):
+        d = s["d"]
+        rms = _rms(np.hypot(d[:, 0], d[:, 1])) if len(d) else float("nan")
+        axs[k].plot(d[:, 0], d[:, 1], ".")
+        axs[k].set_title(f"{('left', 'right')[k]}: {len(d)} crosses, RMS {rms:.3f} px")
+        axs[k].set_xlabel("dx px")
+        axs[k].set_ylabel("dy px")
+        axs[k].set_xlim(-lim, lim)
+        axs[k].set_ylim(-lim, lim)
+        axs[k].set_aspect("equal")
+        axs[k].axhline(0, color="0.8", lw=0.5)
+        axs[k].axvline(0, color="0.8", lw=0.5)
+    return fig
+
+
 def _report(path, res: DemoResult, cfg, pair, scans, stereo, feats, pts, chk_err, ao, ro):
     """The demo's self-contained HTML report."""
+    import datetime
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from softplot import __version__
     from softplot.export.html import Report
 
     rep = Report("softplot demo: Rollei 6006 stereo pair, scans to contours")
     rep.paragraph(
+        f"softplot {__version__}, "
+        f"{datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}. "
         f"Synthetic pair at photo scale 1:{res.scale:.0f}, scans at {cfg.dpi:.0f} dpi; contour "
         f"interval {cfg.interval:g} m. Image coordinates of tie, control and check points are "
         "their exact truth pixel positions, standing in for the operator's measurements; the "
@@ -641,7 +755,17 @@ def _report(path, res: DemoResult, cfg, pair, scans, stereo, feats, pts, chk_err
     )
     rep.heading("Accuracy against truth")
     rep.preformatted(res.summary())
+    rep.heading("The scans and their reseau crosses")
+    for k, s in enumerate(scans):
+        side = ("left", "right")[k]
+        rep.figure(_scan_figure(plt, s, side),
+                   f"{side} scan (thumbnail, pixel coordinates of the full scan) with the "
+                   "detected crosses: measured, missing and rejected")
+        plt.close("all")
     rep.heading("Contours")
+    rep.figure(_contour_image_figure(plt, scans[0], stereo.left, feats),
+               "restituted contours over the left scan, heights in m")
+    plt.close("all")
     fig, ax = plt.subplots(figsize=(7, 6))
     for H in sorted({f.height for f in feats}):
         t = pair.contour_truth(H, 180)
@@ -656,26 +780,24 @@ def _report(path, res: DemoResult, cfg, pair, scans, stereo, feats, pts, chk_err
     ax.set_ylabel("Y m")
     ax.legend(loc="upper right")
     rep.figure(fig, "restituted contours (blue) over the true ones (grey), object m")
+    plt.close("all")
     rep.heading("Detection: detected minus true cross positions")
-    fig, axs = plt.subplots(1, 2, figsize=(9, 4.5))
-    for k, s in enumerate(scans):
-        d = s["d"]
-        axs[k].plot(d[:, 0], d[:, 1], ".")
-        axs[k].set_title(f"{('left', 'right')[k]}: {len(d)} crosses")
-        axs[k].set_xlabel("dx px")
-        axs[k].set_ylabel("dy px")
-        axs[k].set_aspect("equal")
-    rep.figure(fig)
-    rep.heading("Check points after absolute orientation (object m)")
-    rep.table(["point", "dX", "dY", "dZ"],
-              [[f"check {i + 1}", *map(float, e)] for i, e in enumerate(chk_err)])
+    rep.figure(_detection_figure(plt, scans), "both scans on one scale, pixels of the scan")
+    plt.close("all")
+    rep.heading("Check points after absolute orientation (transformed minus true, object m)")
+    rep.table(["point", "dX m", "dY m", "dZ m"], _check_rows(chk_err))
     rep.heading("Orientation")
-    rep.table(["photo", "X0", "Y0", "Z0", "omega deg", "phi deg", "kappa deg"],
-              [[p.name, *map(float, p.X0), *map(float, np.rad2deg(p.angles))]
-               for p in (stereo.left, stereo.right)])
+    rep.table(["step", "parameter", "value", "std", "unit"],
+              [[a, b, *_value_std_text(v, sd), u] for a, b, v, sd, u in _orientation_rows(ro, ao)])
     rep.paragraph(f"relative orientation: sigma0 {1000 * ro.sigma0:.3f} um (photo), redundancy "
                   f"{ro.redundancy}; "
                   f"absolute orientation: sigma0 {ao.sigma0:.4f} m, redundancy {ao.redundancy}")
+    rep.table(["photo", "X0 m", "Y0 m", "Z0 m", "omega deg", "phi deg", "kappa deg"],
+              [[p.name, *(f"{v:.3f}" for v in p.X0), *(f"{v:.4f}" for v in np.rad2deg(p.angles))]
+               for p in (stereo.left, stereo.right)])
+    rep.paragraph("Exterior orientation of each photo in the object frame, composed from the "
+                  "relative and absolute orientations above (whose standard deviations the "
+                  "table above gives).")
     rep.heading("Outputs")
     rep.table(["what", "file"], [[k, v] for k, v in res.outputs.items()])
     return rep.write(path)
