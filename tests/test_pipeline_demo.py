@@ -142,8 +142,7 @@ def test_report_figures_and_rows():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from softplot.pipeline.demo import (
-        _check_rows, _detection_figure, _scan_figure, _value_std_text)
+    from softplot.pipeline.demo import _check_rows, _detection_figure, _scan_figure, _value_std_text
 
     rows = _check_rows([[3.0, 1.0, 0.0], [-4.0, -1.0, 2.0]])
     assert rows[-1][0] == "RMS"
