@@ -75,12 +75,16 @@ def test_process_bad_input(scans, tmp_path, capsys):
                    "--out", tmp_path / "o") == 2
     assert run_cli("process", out[0][0], "--camera", "no-such-camera",
                    "--out", tmp_path / "o") == 2
-    # a foreign file where the result would go is never overwritten
+    # a file where the result would go is never overwritten without --overwrite (refused
+    # before any work), and a foreign one not even with it
     res = tmp_path / "r"
     res.mkdir()
     (res / "scan0.json").write_text('{"mine": 1}')
     assert run_cli("process", out[0][0], "--camera", "rollei-6006", "--out", res,
-                   "--quiet") == 1
+                   "--quiet") == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert run_cli("process", out[0][0], "--camera", "rollei-6006", "--out", res,
+                   "--quiet", "--overwrite") == 1
     assert (res / "scan0.json").read_text() == '{"mine": 1}'
     err = capsys.readouterr()
     assert "Traceback" not in err.err + err.out

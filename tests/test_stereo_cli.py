@@ -215,7 +215,7 @@ def test_bad_input_one_line_errors(pair, tmp_path, capsys):
     assert code == 2 and "exactly 2 rows" in err
     before = good.read_bytes()
     code, _, err = _contour(capsys, photos, good, good)
-    assert code == 2 and "overwrite an input" in err and good.read_bytes() == before
+    assert code == 2 and "is an input file" in err and good.read_bytes() == before
     code, _, err = _contour(capsys, photos, good, tmp_path / "o.csv", height="5000")
     assert code == 2 and "behind the right camera" in err
 

@@ -16,6 +16,7 @@ import click
 import numpy as np
 
 from softplot import __version__
+from softplot.cli._outputs import guard_outputs, overwrite_option
 from softplot.errors import SoftplotError
 from softplot.geometry.rotation import from_radians, to_radians
 
@@ -45,13 +46,15 @@ def input_option(flag: str, dest: str, help: str):  # noqa: A002
 
 
 def json_option(f):
-    """The ``--json OUT.json`` option."""
+    """The ``--json OUT.json`` option and ``--overwrite`` (:mod:`softplot.cli._outputs`)."""
+    f = overwrite_option(f)
     return click.option(
         "--json",
         "json_path",
         type=click.Path(dir_okay=False, path_type=Path),
         default=None,
-        help="Write the result as JSON to this file (never an input file).",
+        help="Write the result as JSON to this file (never an input file; an existing file "
+        "only with --overwrite).",
     )(f)
 
 
@@ -247,12 +250,7 @@ def write_json(path: Path | None, data: dict, inputs: list[Path]) -> None:
     if path is None:
         return
     path = Path(path)
-    for p in inputs:
-        try:
-            if p is not None and path.resolve() == Path(p).resolve():
-                raise SoftplotError(f"--json {path} would overwrite the input file {p}")
-        except OSError:
-            continue
+    guard_outputs([path], inputs)
     try:
         path.write_text(json.dumps(data, indent=2, allow_nan=True) + "\n")
     except OSError as exc:

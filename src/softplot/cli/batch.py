@@ -3,9 +3,11 @@
 Many scans through dask.distributed (:mod:`softplot.pipeline.batch`): a LocalCluster of N
 single-threaded worker processes by default, an existing cluster by its scheduler address.
 At most 2 tasks per worker are in flight (bounded memory); a failing scan is recorded with
-its error and the rest go on; a rerun skips scans whose ``<stem>.json`` is complete and redoes
-missing or half-written ones. Ends with the summary table; writes ``summary.csv`` and
-``report.html``. Exit code: 0 every scan done or skipped; 1 some failed; 2 bad input.
+its error and the rest go on; a rerun skips scans whose ``<stem>.json`` is complete and was
+made with the same settings, redoes missing or half-written ones, and refuses results made with
+other settings unless --overwrite (which recomputes every scan). Ends with the summary table;
+writes ``summary.csv`` and ``report.html``. Exit code: 0 every scan done or skipped; 1 some
+failed; 2 bad input.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from softplot.errors import SoftplotError
 @click.option("--scheduler", default=None,
               help="Address of an existing dask scheduler (tcp://host:8786) instead.")
 def command(patterns, camera, out, flatten, method, pixel_size, dpi, polarity, rotate, scene,
-            quiet, workers, scheduler) -> int:
+            quiet, overwrite, workers, scheduler) -> int:
     """Process every scan matched by PATTERNS (quoted globs, ** allowed) on dask.distributed."""
     from softplot.pipeline.batch import check_stems, expand, run_batch
     from softplot.pipeline.process import load_results, process_scan, write_report
@@ -37,7 +39,7 @@ def command(patterns, camera, out, flatten, method, pixel_size, dpi, polarity, r
     check_stems(scans)
     kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene)
     rep = run_batch(scans, Path(out), process_scan, kw, workers=workers, scheduler=scheduler,
-                    progress=not quiet)
+                    progress=not quiet, overwrite=overwrite)
     report = write_report(Path(out) / "report.html", load_results(out, rep.rows),
                           title="softplot batch")
     click.echo(rep.table())

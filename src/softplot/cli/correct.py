@@ -20,6 +20,7 @@ from pathlib import Path
 
 import click
 
+from softplot.cli._outputs import guard_outputs, overwrite_option
 from softplot.errors import SoftplotError
 
 METHOD_NAMES = (
@@ -143,16 +144,9 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
     inputs = [p for p in [scan_p] if p is not None]
     inputs += [Path(p) for p in (detection, points) if p is not None]
     outputs = [Path(p) for p in (out, resample_out) if p is not None]
-    for o in outputs:
-        for i in inputs:
-            if _same_file(o, i) or o == i:
-                raise SoftplotError(f"{o}: is an input file; refusing to overwrite it")
-        if o.exists():
-            raise SoftplotError(f"{o}: exists; refusing to overwrite")
     if resample_out is not None:
-        side = Path(resample_out).with_name(Path(resample_out).name + ".json")
-        if side.exists():
-            raise SoftplotError(f"{side}: exists; refusing to overwrite")
+        outputs.append(Path(resample_out).with_name(Path(resample_out).name + ".json"))
+    guard_outputs(outputs, inputs)
     names = xy = None
     if points is not None:
         names, xy = read_points_csv(points)  # read before the (slow) detection
@@ -168,6 +162,7 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
                 "origin and no distortion correction"
             )
         mm, flags = fc.pixel_to(xy, to)
+        Path(out).unlink(missing_ok=True)  # allowed by guard_outputs (--overwrite)
         write_points_csv(out, names, mm, flags)
         counts = {k: int((flags == v).sum()) for k, v in (("ok", 0), ("outside-reseau", 1),
                                                           ("outside-image", 2))}
@@ -178,6 +173,10 @@ def _apply(scan, camera, detection, method, points, out, to, resample_out, pixel
     if resample_out is not None:
         ps = pixel_size / 1000.0 if pixel_size else default_pixel_size(fc, sc.dpi)
         res = resample(sc.data, fc, ps, interpolation)
+        rp = Path(resample_out)
+        if rp.suffix.lower() in (".tif", ".tiff"):  # allowed by guard_outputs (--overwrite)
+            for q in (rp, rp.with_name(rp.name + ".json")):
+                q.unlink(missing_ok=True)
         tif, side = write_resampled(
             resample_out,
             res,
@@ -208,6 +207,7 @@ def _apply_options(f):
                      help="Resampled pixel size in micrometres (default: the scan's)."),
         click.option("--interpolation", type=click.Choice(["linear", "cubic", "nearest"]),
                      default="linear", show_default=True, help="Resampling interpolation."),
+        overwrite_option,
         click.option("--force", is_flag=True,
                      help="Apply a detection made on another scan or with another camera "
                           "(refused otherwise; a warning is printed)."),
@@ -249,6 +249,7 @@ def resample_cmd(**kw) -> None:
               help="Also write the table as JSON.")
 @click.option("--force", is_flag=True,
               help="Use a detection made on another scan or with another camera.")
+@overwrite_option
 def compare_cmd(source, camera, detection, methods, json_out, force) -> None:
     """Cross-validate every method over the crosses (leave-one-out and checkerboard).
 
@@ -260,8 +261,7 @@ def compare_cmd(source, camera, detection, methods, json_out, force) -> None:
 
     cam = load_camera(camera)
     src = Path(source)
-    if json_out is not None and Path(json_out).exists():
-        raise SoftplotError(f"{json_out}: exists; refusing to overwrite")
+    guard_outputs([json_out], [src, detection])
     if src.suffix.lower() == ".json":
         det, _ = _marks(None, cam, src, force)
     else:

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from softplot.cli._detect_opts import detection_options
+from softplot.cli._outputs import guard_outputs
 from softplot.errors import SoftplotError
 
 
@@ -57,18 +58,14 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
     if json_out and many:
         raise SoftplotError("--json takes one scan; use --out-dir DIR for several")
     inputs = {Path(s).resolve() for s in scans}
-    for o in (json_out, plot):
-        if o and Path(o).resolve() in inputs:
-            raise SoftplotError(f"{o}: is an input scan; refusing to overwrite it")
-    if not overwrite:  # every file this run would write, checked before any work is done
-        for s in scans:
-            p = Path(s)
-            targets = [json_out and Path(json_out), out_dir and Path(out_dir) / f"{p.stem}.json",
-                       _out_path(Path(plot) if plot else None, p.stem, many, ".png"),
-                       micmac and Path(micmac) / micmac_name(p.name)]
-            for t in targets:
-                if t and t.exists():
-                    raise SoftplotError(f"{t}: exists; refusing to overwrite (use --overwrite)")
+    # every file this run would write, checked (and its folder made) before any work is done
+    targets = []
+    for s in scans:
+        p = Path(s)
+        targets += [json_out and Path(json_out), out_dir and Path(out_dir) / f"{p.stem}.json",
+                    _out_path(Path(plot) if plot else None, p.stem, many, ".png"),
+                    micmac and Path(micmac) / micmac_name(p.name)]
+    guard_outputs([t for t in targets if t], scans, overwrite)
     failed = 0
     iterator = scans
     if many and sys.stderr.isatty():

@@ -23,6 +23,10 @@ def common_options(f):
     from softplot.cli.correct import METHOD_NAMES
 
     f = click.option("--quiet", is_flag=True, help="No progress bar.")(f)
+    f = click.option("--overwrite", is_flag=True,
+                     help="Recompute and replace existing results in --out (without it an "
+                     "existing result is refused, or resumed by batch when made with the same "
+                     "settings).")(f)
     f = detection_options(f)
     f = click.option("--dpi", type=click.FloatRange(min=0, min_open=True), default=None,
                      help="Scan resolution when the files do not say.")(f)
@@ -56,7 +60,7 @@ def task_kwargs(camera, method, flatten, pixel_size, dpi, polarity="auto", rotat
 @click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @common_options
 def command(scans, camera, out, flatten, method, pixel_size, dpi, polarity, rotate, scene,
-            quiet) -> int:
+            quiet, overwrite) -> int:
     """Detect marks, cross-validate film corrections and check quality of SCANS.
 
     Exit code 0 when every scan is done, 1 when some failed (see summary.csv), 2 on bad
@@ -71,7 +75,7 @@ def command(scans, camera, out, flatten, method, pixel_size, dpi, polarity, rota
             raise SoftplotError(f"{p}: scan file not found")
     check_stems(paths)
     kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene)
-    rep = process_scans(paths, out, progress=not quiet, **kw)
+    rep = process_scans(paths, out, progress=not quiet, overwrite=overwrite, **kw)
     report = write_report(Path(out) / "report.html", load_results(out, rep.rows))
     click.echo(rep.table())
     click.echo(f"results: {Path(out)}/<scan>.json, {Path(out) / 'summary.csv'}, {report}")

@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from softplot.cli._orient import ang_in, angles_option
+from softplot.cli._outputs import guard_outputs, overwrite_option
 from softplot.errors import SoftplotError
 
 PHOTO_COLUMNS = ("photo", "X0", "Y0", "Z0", "omega", "phi", "kappa", "c")
@@ -116,15 +117,14 @@ def _read_csv(path: Path, columns, what: str) -> tuple[list[str], np.ndarray]:
 @click.option("--check", "check_path", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="CSV name,X,Y,Z of check points (object units): print each "
               "restituted point's difference from them and the RMS.")
+@overwrite_option
 def command(photos_path, mode, points_path, height, out_path, angle_unit="deg",
             sigma_image=0.005, check_path=None):
     """Restitute points of an oriented stereo pair in one of the four STEREOBIT modes."""
     from softplot.stereo.model import OrientedPhoto, StereoModel
 
     out_path = Path(out_path)
-    for p in (photos_path, points_path):
-        if out_path.exists() and out_path.resolve() == Path(p).resolve():
-            raise SoftplotError(f"--out {out_path} would overwrite an input file")
+    guard_outputs([out_path], [photos_path, points_path, check_path])
     names, ph = _read_csv(photos_path, PHOTO_COLUMNS, "photos file")
     if len(names) != 2:
         raise SoftplotError(

@@ -84,6 +84,56 @@ def expand(patterns: Iterable[str]) -> list[Path]:
     return [out[k] for k in sorted(out)]
 
 
+#: the task options that make a result what it is: a rerun resumes only results made with the
+#: same values (recorded in each result as ``settings``)
+SETTINGS_KEYS = ("camera", "method", "flatten", "pixel_size_um", "dpi", "polarity", "rotate",
+                 "mirror", "scene")
+
+
+def settings_of(kwargs: dict) -> dict:
+    """The ``settings`` record of a task's keyword arguments (a camera by its name)."""
+    out = {}
+    for k in SETTINGS_KEYS:
+        if k not in kwargs:
+            continue
+        v = kwargs[k]
+        out[k] = getattr(v, "name", v) if not isinstance(v, (str, int, float, bool)) else v
+        if isinstance(out[k], os.PathLike):
+            out[k] = str(out[k])
+    return out
+
+
+def settings_differ(recorded, wanted: dict) -> list[str]:
+    """The names of the settings in which ``recorded`` (a result's) differs from ``wanted``."""
+    if not wanted:
+        return []
+    if not isinstance(recorded, dict):
+        return ["settings (not recorded)"]
+    return [k for k in wanted if recorded.get(k) != wanted[k]]
+
+
+def check_resume(scans, out_dir: Path, kwargs: dict, overwrite: bool) -> None:
+    """Refuse (one line) a rerun whose finished results were made with other settings, unless
+    ``overwrite`` (they are then recomputed)."""
+    if overwrite:
+        return
+    want = settings_of(kwargs)
+    for s in scans:
+        rp = result_path(out_dir, Path(s))
+        if not is_complete(rp):
+            continue
+        with open(rp, encoding="utf-8") as fh:
+            rec = json.load(fh).get("settings")
+        diff = settings_differ(rec, want)
+        if diff:
+            was = ", ".join(f"{k}={(rec or {}).get(k)!r}" for k in diff if isinstance(rec, dict))
+            now = ", ".join(f"{k}={want.get(k)!r}" for k in diff if k in want)
+            raise SoftplotError(
+                f"{rp}: made with other settings ({was or 'not recorded'}; now {now or diff[0]});"
+                " use --overwrite to recompute, or another --out"
+            )
+
+
 def result_path(out_dir: Path, scan: Path) -> Path:
     """Where the per-scan result of ``scan`` goes."""
     return Path(out_dir) / f"{scan.stem}.json"
@@ -199,12 +249,15 @@ def run_batch(
     scheduler: str | None = None,
     progress: bool = True,
     memory_limit: str = "auto",
+    overwrite: bool = False,
 ) -> BatchReport:
     """Process ``scans`` with ``task(scan, out_dir, **task_kwargs)`` on dask.distributed.
 
     ``scheduler`` is the address of an existing cluster; without it a LocalCluster of
     ``workers`` single-threaded worker processes is started and closed again. Scans whose
-    result is already complete are skipped. The summary CSV ``summary.csv`` in ``out_dir``
+    result is already complete and made with the same settings (:func:`settings_of`) are
+    skipped; one made with other settings is refused unless ``overwrite`` (which recomputes
+    every scan). The summary CSV ``summary.csv`` in ``out_dir``
     lists every scan of this run and of earlier runs found complete.
     """
     try:
@@ -218,12 +271,13 @@ def run_batch(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     kwargs = dict(task_kwargs or {})
+    check_resume(scans, out_dir, kwargs, overwrite)
     report = BatchReport()
     t0 = time.perf_counter()
     todo = []
     for s in scans:
         rp = result_path(out_dir, s)
-        if is_complete(rp):
+        if not overwrite and is_complete(rp):
             report.skipped += 1
             with open(rp, encoding="utf-8") as fh:
                 report.rows.append({**_row_from_result(s, json.load(fh)), "status": "skipped"})

@@ -198,11 +198,16 @@ def process_scan(
     def num(v):
         return None if v is None or not np.isfinite(v) else float(v)
 
+    from softplot.pipeline.batch import settings_of
+
     result = {
         "softplot": "process",
         "version": __version__,
         "scan": str(scan),
         "camera": cam.name,
+        "settings": settings_of({"camera": camera, "method": method, "flatten": flatten,
+                                 "pixel_size_um": pixel_size_um, "dpi": dpi,
+                                 "polarity": polarity, "rotate": float(rotate), "scene": scene}),
         "status": "done",
         "width": sc.width,
         "height": sc.height,
@@ -284,9 +289,11 @@ def flatten_image(data, correction, pixel_size_mm: float, resample):
     return Resampled(out, float(pixel_size_mm), float(x_min), float(y_max), correction.method)
 
 
-def process_scans(scans, out_dir, *, progress: bool = True, **kwargs):
+def process_scans(scans, out_dir, *, progress: bool = True, overwrite: bool = False,
+                  **kwargs):
     """Process ``scans`` one after the other in this process (``softplot process``).
 
+    An existing result (``<stem>.json``) is refused unless ``overwrite``, before any work.
     Every scan is attempted; failures are recorded (``<stem>.error.json`` and a "failed"
     row) and the rest go on. Writes ``summary.csv``. Returns a
     :class:`softplot.pipeline.batch.BatchReport`.
@@ -296,6 +303,11 @@ def process_scans(scans, out_dir, *, progress: bool = True, **kwargs):
     from softplot.pipeline.batch import BatchReport, run_one, write_summary
 
     out_dir = Path(out_dir)
+    if not overwrite:
+        for s in scans:
+            rp = _result_path(out_dir, Path(s))
+            if rp.exists():
+                raise SoftplotError(f"{rp}: exists; refusing to overwrite (use --overwrite)")
     out_dir.mkdir(parents=True, exist_ok=True)
     report = BatchReport()
     t0 = time.perf_counter()
