@@ -49,6 +49,7 @@ class DsmOptions:
     min_points: int = 3
     uniqueness: int = 5
     window: int = 9
+    max_side: int = 2500
     min_corr: float = 0.7
 
 
@@ -173,6 +174,10 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     dist = geo_c.base * geo_c.cn / np.maximum(np.abs(dx_mm), 1e-9)
     ground_per_mm = float(np.min(dist)) / geo_c.cn  # object m per normalised mm (nearest)
     pix = max(scan_px, gsd / opt.samples_per_cell / ground_per_mm)
+    # semi-global matching cost grows with pixels x disparities: at most max_side pixels
+    # across the normalised images (fewer samples per cell on huge scans)
+    extent_mm = max(geo_c.cols[0], geo_c.rows) * geo_c.pixel_mm
+    pix = max(pix, extent_mm / opt.max_side)
     f = pix / scan_px
     if f > 1.2:
         greys = [cv2.GaussianBlur(g, (0, 0), 0.5 * f) for g in greys]
