@@ -128,7 +128,10 @@ def main(argv: list[str] | None = None) -> None:
     except SoftplotError as exc:
         click.echo(f"softplot: error: {exc}", err=True)
         sys.exit(2)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):  # Ctrl-C
+            click.echo("softplot: interrupted", err=True)
+            sys.exit(130)
         click.echo("softplot: aborted", err=True)
         sys.exit(1)
     except click.ClickException as exc:

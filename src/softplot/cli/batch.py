@@ -6,7 +6,8 @@ At most 2 tasks per worker are in flight (bounded memory); a failing scan is rec
 its error and the rest go on; a rerun skips scans whose ``<stem>.json`` is complete and was
 made with the same settings, redoes missing or half-written ones, and refuses results made with
 other settings unless --overwrite (which recomputes every scan). Ends with the summary table;
-writes ``summary.csv`` and ``report.html``. Exit code: 0 every scan done or skipped; 1 some
+writes ``summary.csv`` and ``report.html``. Ctrl-C stops the run: the summary and report
+cover what finished, exit code 130. Exit code otherwise: 0 every scan done or skipped; 1 some
 failed; 2 bad input.
 """
 
@@ -44,4 +45,8 @@ def command(patterns, camera, out, flatten, method, pixel_size, dpi, polarity, r
                           title="softplot batch")
     click.echo(rep.table())
     click.echo(f"results: {Path(out)}/<scan>.json, {Path(out) / 'summary.csv'}, {report}")
+    if rep.interrupted:
+        click.echo(f"softplot: interrupted; {rep.interrupted} scan(s) not finished - run the "
+                   "same command again to resume", err=True)
+        return 130
     return 1 if rep.failed else 0

@@ -35,6 +35,8 @@ class BatchReport:
     rows: list[dict] = field(default_factory=list)
     skipped: int = 0
     seconds: float = 0.0
+    #: scans not finished because the run was interrupted (Ctrl-C)
+    interrupted: int = 0
 
     @property
     def failed(self) -> int:
@@ -61,6 +63,8 @@ class BatchReport:
         lines.append(
             f"{self.done} done, {self.failed} failed, {self.skipped} skipped (already done), "
             f"{self.seconds:.1f} s"
+            + (f"; interrupted: {self.interrupted} not finished (run again to resume them)"
+               if self.interrupted else "")
         )
         return "\n".join(lines)
 
@@ -288,15 +292,22 @@ def run_batch(
         if scheduler:
             client = Client(scheduler)
         else:
-            cluster = LocalCluster(
-                n_workers=max(1, workers),
-                threads_per_worker=1,
-                processes=True,
-                # a random port: None does not disable the dashboard (dask/distributed#8136)
-                dashboard_address=":0",
-                memory_limit=memory_limit,
-            )
-            client = Client(cluster)
+            # the worker processes ignore Ctrl-C (they inherit SIGINT ignored): the terminal
+            # sends it to the whole process group, and only this process handles it
+            old = _ignore_sigint()
+            try:
+                cluster = LocalCluster(
+                    n_workers=max(1, workers),
+                    threads_per_worker=1,
+                    processes=True,
+                    # a random port: None does not disable the dashboard (dask/distributed#8136)
+                    dashboard_address=":0",
+                    memory_limit=memory_limit,
+                )
+                client = Client(cluster)
+            finally:
+                _restore_sigint(old)
+        finished = set()
         try:
             window = 2 * max(1, len(client.scheduler_info().get("workers", {})) or workers)
             pending = iter(todo)
@@ -311,35 +322,83 @@ def run_batch(
             for s in [next(pending) for _ in range(min(window, len(todo)))]:
                 submit(s)
             bar = tqdm(total=len(todo), unit="scan", disable=not progress, desc="batch")
-            for fut in ac:
-                scan = scan_of.pop(fut.key)
-                try:
-                    report.rows.append(fut.result())
-                except Exception as exc:  # noqa: BLE001 - a worker died (memory, signal)
-                    rp = result_path(out_dir, scan)
-                    if is_complete(rp):  # finished; only its summary died with the worker
-                        with open(rp, encoding="utf-8") as fh:
-                            report.rows.append(_row_from_result(scan, json.load(fh)))
-                    else:
-                        msg = f"worker lost: {type(exc).__name__}: {exc}".splitlines()[0]
-                        report.rows.append({**_row_from_result(scan, {}), "status": "failed",
-                                            "error": msg})
-                        write_json_atomic(out_dir / f"{scan.stem}.error.json",
-                                          {"scan": str(scan), "error": msg, "complete": False})
-                fut.release()
-                bar.update(1)
-                nxt = next(pending, None)
-                if nxt is not None:
-                    submit(nxt)
+            try:
+                _collect(ac, scan_of, report, out_dir, bar, pending, submit, finished)
+            except KeyboardInterrupt:
+                report.interrupted = len(todo) - len(finished)
             bar.close()
         finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            _quiet_close(client, cluster)
+        if report.interrupted:
+            # results the workers wrote (atomically) before they were stopped still count
+            for s in todo:
+                if s not in finished and is_complete(result_path(out_dir, s)):
+                    with open(result_path(out_dir, s), encoding="utf-8") as fh:
+                        report.rows.append(_row_from_result(s, json.load(fh)))
+                    report.interrupted -= 1
     report.rows.sort(key=lambda r: r["scan"])
     report.seconds = time.perf_counter() - t0
     write_summary(out_dir / "summary.csv", report.rows)
     return report
+
+
+def _collect(ac, scan_of, report, out_dir, bar, pending, submit, finished) -> None:
+    """Gather results as they come, submitting the next scan for each one finished."""
+    for fut in ac:
+        scan = scan_of.pop(fut.key)
+        try:
+            report.rows.append(fut.result())
+        except Exception as exc:  # noqa: BLE001 - a worker died (memory, signal)
+            rp = result_path(out_dir, scan)
+            if is_complete(rp):  # finished; only its summary died with the worker
+                with open(rp, encoding="utf-8") as fh:
+                    report.rows.append(_row_from_result(scan, json.load(fh)))
+            else:
+                msg = f"worker lost: {type(exc).__name__}: {exc}".splitlines()[0]
+                report.rows.append({**_row_from_result(scan, {}), "status": "failed",
+                                    "error": msg})
+                write_json_atomic(out_dir / f"{scan.stem}.error.json",
+                                  {"scan": str(scan), "error": msg, "complete": False})
+        finished.add(scan)
+        fut.release()
+        bar.update(1)
+        nxt = next(pending, None)
+        if nxt is not None:
+            submit(nxt)
+
+
+def _ignore_sigint():
+    """Ignore SIGINT (returns the old handler; None when not in the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _restore_sigint(old) -> None:
+    import signal
+
+    if old is not None:
+        signal.signal(signal.SIGINT, old)
+
+
+def _quiet_close(client, cluster) -> None:
+    """Close the client and the local cluster without tracebacks (also after Ctrl-C)."""
+    import contextlib
+    import logging
+
+    old = _ignore_sigint()  # a second Ctrl-C does not tear the shutdown
+    try:
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        with contextlib.suppress(Exception):
+            client.close()
+        if cluster is not None:
+            with contextlib.suppress(Exception):
+                cluster.close()
+    finally:
+        _restore_sigint(old)
 
 
 def write_summary(path: Path, rows: list[dict]) -> None:
