@@ -44,4 +44,4 @@ def test_a_wrong_polarity_is_reported_in_one_line(pol):
         detect(sc, CAM, polarity=wrong)
     msg = str(e.value)
     assert "\n" not in msg
-    assert f"--polarity {wrong} contradicts the scan" in msg and f"--polarity {pol}" in msg
+    assert f"no reseau found with --polarity {wrong}" in msg and f"--polarity {pol}" in msg

@@ -340,8 +340,8 @@ def detect(
             raise first from None
         n = int(det.measured.sum())
         raise DetectionError(
-            f"{name}: --polarity {polarity} contradicts the scan: no {polarity} reseau crosses "
-            f"found, but {n} {other} ones ({'bright' if other == 'negative' else 'dark'} marks); "
+            f"{name}: no reseau found with --polarity {polarity}: the scan's crosses are "
+            f"{other} ({n} found, {'bright' if other == 'negative' else 'dark'} marks); "
             f"give --polarity {other} or auto") from None
 
 

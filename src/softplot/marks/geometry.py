@@ -34,7 +34,7 @@ ARM_RANGE = (0.3, 3.0)
 #: admissible true line width, times the starting guess
 WIDTH_RANGE = (0.35, 3.0)
 #: crosses profiled (the best-scoring ones)
-MAX_MARKS = 12
+MAX_MARKS = 10
 #: a line is resolved (its width measured, not taken from the guess) when at least this many
 #: times the blur sigma wide
 WIDTH_RESOLVED = 1.5
@@ -237,9 +237,9 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     order = order[:max_marks]
     L0, w0 = float(guess.length), float(guess.width)
     H = min(0.5 * ARM_RANGE[1] * L0 + 4.0 * w0 + 6.0, 0.45 * pitch_px)
-    V = max(3.0 * WIDTH_RANGE[1] * w0, 6.0) + 3.0
+    V = max(1.5 * WIDTH_RANGE[1] * w0 + 3.0, 6.0) + 3.0
     du = 0.5 if ARM_RANGE[0] * L0 < 30 else 1.0
-    dv = float(np.clip(w0 / 4.0, 0.25, 0.5))
+    dv = float(np.clip(w0 / 4.0, 0.25, 1.0))
     u = np.arange(-H, H + 1e-9, du)
     v = np.arange(-V, V + 1e-9, dv)
     lo_half = 0.5 * ARM_RANGE[0] * L0
