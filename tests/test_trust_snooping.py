@@ -150,3 +150,37 @@ def test_intersect_names_the_blunder(tmp_path, capsys):
     d = json.loads(out.read_text())
     _keys(d, "pope-tau")
     assert d["blunders"][0] == "p3"
+
+
+def test_pc_two_planes_and_resect_name_the_blunder(tmp_path, capsys):
+    from softplot.orientation.two_planes import plane_readings
+
+    rng = np.random.default_rng(6)
+    F, PC, Z1, Z2 = 152.3, np.array([100.2, 200.3, 350.0]), 100.0, 250.0
+    g = np.arange(-80.0, 81.0, 40.0)
+    grid = np.array([(x, y) for x in g for y in g])
+    R1 = plane_readings(grid, Z1, PC, np.zeros(3), F) + rng.normal(0, 0.002, (len(grid), 2))
+    R2 = plane_readings(grid, Z2, PC, np.zeros(3), F) + rng.normal(0, 0.002, (len(grid), 2))
+    R1[6, 0] += 0.05
+    rd = write_csv(tmp_path / "rd.csv", ["name", "X1", "Y1", "X2", "Y2", "x", "y"],
+                   [(f"g{i}", *a, *b, *c) for i, (a, b, c) in enumerate(zip(R1, R2, grid,
+                                                                            strict=True))])
+    a = tmp_path / "a.json"
+    code, _, err = run(["pc", "two-planes", "--readings", rd, "--z1", Z1, "--z2", Z2,
+                        "--json", a], capsys)
+    assert code == 0, err
+    d = json.loads(a.read_text())
+    assert d["snooping_test"]["test"] in ("baarda-w", "pope-tau")
+    assert d["blunders"][0] == "g6"
+    fids = np.array([[-80.0, 0.0], [80.0, 0.0], [0.0, 80.0], [0.0, -80.0], [40.0, 40.0],
+                     [-40.0, -40.0], [40.0, -40.0], [-40.0, 40.0]])
+    XY = plane_readings(fids, Z1, PC, np.zeros(3), F) + rng.normal(0, 0.002, (8, 2))
+    XY[2, 1] += 0.05
+    m = write_csv(tmp_path / "m.csv", ["name", "x", "y", "X", "Y"],
+                  [(f"F{i}", *p, *q) for i, (p, q) in enumerate(zip(fids, XY, strict=True))])
+    code, _, err = run(["pc", "resect", "--marks", m, "--z", Z1, "--principal-distance", F,
+                        "--json", tmp_path / "b.json"], capsys)
+    assert code == 0, err
+    d = json.loads((tmp_path / "b.json").read_text())
+    assert d["snooping_test"]["test"] in ("baarda-w", "pope-tau")
+    assert d["blunders"][0] == "F2"

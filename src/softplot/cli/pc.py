@@ -23,6 +23,15 @@ from softplot.orientation.resection import EO_NAMES
 from softplot.orientation.two_planes import differential, fiducial_resection, two_planes
 
 
+def _snooping(adj, names) -> dict:
+    """``blunders`` (point names, most likely first) and ``snooping_test`` of an adjustment
+    whose observations come point by point, the same number per point."""
+    from softplot.adjust import snooping_json
+
+    k = adj.flagged.size // max(1, len(names))
+    return snooping_json(adj.snooping, [n for n in names for _ in range(k)])
+
+
 @click.group("pc")
 def command() -> None:
     """Projection centres of analogue plotters (Birardi, ISP Hamburg 1980).
@@ -121,6 +130,7 @@ def two_planes_cmd(path, z1, z2, method, f_weights, sigma, json_path) -> None:
         }
         for n, v in zip(names, r.residuals, strict=True)
     ]
+    data.update(_snooping(r.adjustment, names))
     write_json(json_path, data, [path])
     params = [(k, "mm", v, s, 4) for k, v, s in zip(("X0", "Y0", "Z0"), r.X0, r.std, strict=True)]
     if r.f is not None:
@@ -200,6 +210,7 @@ def resect_cmd(path, z, f, sigma, angle_unit, json_path) -> None:
         ],
         angles_unit=angle_unit,
     )
+    data.update(_snooping(r.adjustment, list(t["name"])))
     write_json(json_path, data, [path])
     units = ["mm"] * 3 + [angle_unit] * 3
     fl = r.adjustment.flagged.reshape(-1, 2).any(axis=1)
