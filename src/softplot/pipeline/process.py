@@ -222,6 +222,9 @@ def process_scan(
         "recommended": cv.recommended,
         "loo_rms_um": num(loo_rms),
         "loo_max_um": num(loo_max),
+        "correction_check": _correction_check(cv, applied),
+        "certificate": {"name": cam.name, "source": cam.source or None,
+                        "calibration": cam.calibration or None},
         "qc": {"ok": not warnings, "warnings": warnings, "limits": QC_LIMITS},
         "worst": worst,
         "flattened": flattened,
@@ -235,6 +238,19 @@ def process_scan(
     if stale.exists():
         stale.unlink()
     return {k: v for k, v in result.items() if k not in ("detection", "crossval")}
+
+
+def _correction_check(cv, method: str) -> dict:
+    """The applied method's leave-one-out residuals at every mark (film um, x right, y up):
+    the residual of each mark when the correction is fitted to all the others; what the
+    report draws as the residuals after the correction."""
+    try:
+        sc = cv.score(method)
+    except KeyError:
+        return {"method": method, "names": [], "residual_um": []}
+    r = np.asarray(sc.loo_residuals_um, float).reshape(-1, 2)
+    return {"method": method, "kind": "leave-one-out", "names": list(sc.loo_names),
+            "residual_um": [[round(float(a), 4), round(float(b), 4)] for a, b in r]}
 
 
 #: global (smooth) correction methods: their film -> pixel maps are interpolated from a grid
@@ -348,12 +364,92 @@ def _chips(scan_path: str, worst: list[dict], half: int = 12):
     return chips
 
 
+def _report_header(results: list[dict]) -> str:
+    """The report's first line: version, date, inputs and certificates."""
+    import datetime
+
+    cams = sorted({(r.get("certificate") or {}).get("source") or r.get("camera") or "?"
+                   for r in results if r.get("complete")})
+    settings = next((r.get("settings") for r in results if r.get("settings")), None) or {}
+    used = ", ".join(f"{k} {v}" for k, v in settings.items()
+                     if k != "camera" and v not in (None, False))
+    return (f"softplot {__version__}, "
+            f"{datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}; "
+            f"{len(results)} scan(s); certificate: {', '.join(cams) or '?'}"
+            + (f"; settings: {used}" if used else ""))
+
+
+def _qc_limits_text() -> str:
+    return ("QC limits: median mark precision <= "
+            f"{QC_LIMITS['mark_sigma_px']} px, leave-one-out RMS of the correction <= "
+            f"{QC_LIMITS['loo_rms_um']} um on the film, at least "
+            f"{100 * QC_LIMITS['measured_share']:.0f} % of the marks measured.")
+
+
+def _scan_text(r: dict) -> str:
+    """One paragraph naming each figure of a processed scan for what it is."""
+    cert = (r.get("certificate") or {}).get("source") or r["camera"]
+    sig = r.get("mark_sigma_px")
+    return (
+        f"{r['camera']} (certificate {cert}), {r['width']} x {r['height']} px, "
+        f"{r['dpi'] or 0:.0f} dpi; marks: {r['marks_measured']} measured, "
+        f"{r.get('marks_missing', 0)} missing, {r.get('marks_rejected', 0)} rejected of "
+        f"{r['marks_total']}. Mark precision (median of each mark's standard deviation): "
+        f"{sig if sig is not None else float('nan'):.4f} px. Residual RMS against one "
+        f"projective film -> pixel model (film deformation and scanner error included, not a "
+        f"precision): {r['rms_px'] or float('nan'):.4f} px. Correction {r['method']} "
+        f"(recommended {r['recommended']}): leave-one-out RMS "
+        f"{r['loo_rms_um'] or float('nan'):.2f} um, max {r['loo_max_um'] or float('nan'):.2f} "
+        "um on the film.")
+
+
+def _film_residual_axes(ax, r: dict) -> None:
+    """The residuals after the chosen correction (leave-one-out, um) as vectors at the marks'
+    certificate positions (film mm, x right, y up), a reference vector, and the missing and
+    rejected marks drawn and named."""
+    marks = {m["name"]: m for m in r["detection"]["marks"]}
+    chk = r.get("correction_check") or {}
+    names = [n for n in chk.get("names", []) if n in marks and marks[n].get("film_x") is not None]
+    res = {n: v for n, v in zip(chk.get("names", []), chk.get("residual_um", []), strict=True)}
+    allf = np.array([[m["film_x"], m["film_y"]] for m in marks.values()
+                     if m.get("film_x") is not None], float).reshape(-1, 2)
+    if len(allf):
+        ax.plot(allf[:, 0], allf[:, 1], ".", color="0.75", ms=2)
+    if names:
+        xy = np.array([[marks[n]["film_x"], marks[n]["film_y"]] for n in names], float)
+        d = np.array([res[n] for n in names], float)
+        span = float(np.ptp(allf, axis=0).max()) if len(allf) else 1.0
+        ref = float(10 ** np.floor(np.log10(max(np.percentile(np.hypot(*d.T), 90), 1e-3))))
+        scale = 0.06 * span / max(np.abs(d).max(), 1e-9)  # mm per um
+        q = ax.quiver(xy[:, 0], xy[:, 1], d[:, 0], d[:, 1], angles="xy", scale_units="xy",
+                      scale=1 / scale, color="C3", width=0.003)
+        ax.quiverkey(q, 0.82, 1.03, ref, f"{ref:g} um", labelpos="E", coordinates="axes")
+    for status, mk, col in (("missing", "o", "C0"), ("rejected", "x", "C1")):
+        bad = [m for m in marks.values() if m.get("status") == status
+               and m.get("film_x") is not None]
+        if bad:
+            ax.plot([m["film_x"] for m in bad], [m["film_y"] for m in bad], mk, color=col,
+                    mfc="none", ms=8, label=f"{status} ({len(bad)})")
+            for m in bad:
+                ax.annotate(m["name"], (m["film_x"], m["film_y"]), fontsize=6, color=col,
+                            xytext=(3, 3), textcoords="offset points")
+    if any(m.get("status") in ("missing", "rejected") for m in marks.values()):
+        ax.legend(loc="lower right", fontsize=7)
+    ax.set_aspect("equal")
+    ax.set_xlabel("film x mm")
+    ax.set_ylabel("film y mm")
+    ax.set_title(f"residuals after {chk.get('method', r.get('method'))} "
+                 "(leave-one-out), um on the film", fontsize=9)
+
+
 def write_report(path, results: list[dict], title: str = "softplot process",
                  max_detailed: int = 50) -> Path:
     """One self-contained HTML report over the per-scan ``results``.
 
-    Summary table of every scan; for the first ``max_detailed`` done scans: residual
-    vectors of the marks (pixel system), chips of the worst marks, the per-method correction
+    Version, date, inputs, certificates and QC limits; a summary table of every scan; for the
+    first ``max_detailed`` done scans: the residuals after the chosen correction (leave-one-out,
+    um at the marks' film positions) with the missing and rejected marks, chips of the worst
+    marks, the per-method correction
     comparison (cross-validation table and chart, micrometres on the film).
     """
     import matplotlib
@@ -366,50 +462,32 @@ def write_report(path, results: list[dict], title: str = "softplot process",
     rep = Report(title)
     done = [r for r in results if r.get("complete")]
     failed = [r for r in results if not r.get("complete")]
+    rep.paragraph(_report_header(results), None)
     rep.paragraph(f"{len(done)} scans processed, {len(failed)} failed.",
                   "ok" if not failed else "warn")
+    rep.paragraph(_qc_limits_text())
     rep.heading("Summary")
     rows = []
     for r in results:
         if r.get("complete"):
             rows.append([Path(r["scan"]).name, "done", f"{r['marks_measured']}/{r['marks_total']}",
-                         r.get("rms_px"), r.get("method"), r.get("loo_rms_um"),
+                         r.get("mark_sigma_px"), r.get("rms_px"), r.get("method"),
+                         r.get("loo_rms_um"),
                          "ok" if r["qc"]["ok"] else "; ".join(r["qc"]["warnings"])])
         else:
-            rows.append([Path(r["scan"]).name, r.get("status", "failed"), None, None, None,
+            rows.append([Path(r["scan"]).name, r.get("status", "failed"), None, None, None, None,
                          None, r.get("error") or ""])
-    rep.table(["scan", "status", "measured", "rms px", "method", "LOO rms um", "QC / error"],
-              rows)
+    rep.table(["scan", "status", "measured", "mark precision px (median)",
+               "projective model residual RMS px", "correction", "LOO RMS um (film)",
+               "QC / error"], rows)
     for r in done[:max_detailed]:
         name = Path(r["scan"]).name
         rep.heading(name)
-        rep.paragraph(
-            f"{r['camera']}, {r['width']} x {r['height']} px, "
-            f"{r['dpi'] or 0:.0f} dpi; {r['marks_measured']}/{r['marks_total']} marks measured, "
-            f"detection RMS {r['rms_px'] or float('nan'):.4f} px; correction {r['method']} "
-            f"(recommended {r['recommended']}), LOO RMS {r['loo_rms_um'] or float('nan'):.2f} um")
+        rep.paragraph(_scan_text(r))
         for w in r["qc"]["warnings"]:
             rep.paragraph(w, "warn")
-        marks = [m for m in r["detection"]["marks"]
-                 if m.get("status") == "measured" and m.get("residual_x") is not None]
         fig, axs = plt.subplots(1, 2, figsize=(11, 4.8))
-        if marks:
-            xy = np.array([[m["x"], m["y"]] for m in marks])
-            d = np.array([[m["residual_x"], m["residual_y"]] for m in marks])
-            scale = 0.08 * max(r["width"], r["height"]) / max(np.abs(d).max(), 1e-6)
-            axs[0].quiver(xy[:, 0], xy[:, 1], d[:, 0], d[:, 1], angles="xy", scale_units="xy",
-                          scale=1 / scale, color="C3", width=0.003)
-            axs[0].plot(xy[:, 0], xy[:, 1], "k.", ms=2)
-            miss = [m for m in r["detection"]["marks"] if m.get("status") != "measured"
-                    and m.get("x") is not None]
-            if miss:
-                axs[0].plot([m["x"] for m in miss], [m["y"] for m in miss], "bx",
-                            label="not measured")
-                axs[0].legend(loc="lower right")
-            axs[0].set_xlim(0, r["width"])
-            axs[0].set_ylim(r["height"], 0)
-            axs[0].set_aspect("equal")
-            axs[0].set_title(f"residual vectors (x{scale:.0f}), pixel system")
+        _film_residual_axes(axs[0], r)
         meths = [m for m in r["crossval"]["methods"] if m.get("loo_rms_um") is not None]
         if meths:
             names = [m["method"] for m in meths]
