@@ -123,7 +123,7 @@ def test_geotiff_tags_and_sidecar(dsm_run):
 
 def test_occlusion_and_blank_area_are_no_data(tmp_path_factory):
     base = tmp_path_factory.getbasetemp()
-    sc = make_scene(str(base / "matching-scene-box"), 600.0, box=BOX, blank=BLANK)
+    sc = make_scene(str(base / "matching-scene-box"), 400.0, box=BOX, blank=BLANK)
     sess = true_session(sc, base / "matching-session-box")
     from softplot.cli.epipolar import open_session
     from softplot.matching.dsm import dense_surface
