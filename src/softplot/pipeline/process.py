@@ -372,7 +372,7 @@ def _report_header(results: list[dict]) -> str:
                    for r in results if r.get("complete")})
     settings = next((r.get("settings") for r in results if r.get("settings")), None) or {}
     used = ", ".join(f"{k} {v}" for k, v in settings.items()
-                     if k != "camera" and v not in (None, False))
+                     if k != "camera" and v is not None and v is not False)
     return (f"softplot {__version__}, "
             f"{datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}; "
             f"{len(results)} scan(s); certificate: {', '.join(cams) or '?'}"
@@ -423,7 +423,7 @@ def _film_residual_axes(ax, r: dict) -> None:
         scale = 0.06 * span / max(np.abs(d).max(), 1e-9)  # mm per um
         q = ax.quiver(xy[:, 0], xy[:, 1], d[:, 0], d[:, 1], angles="xy", scale_units="xy",
                       scale=1 / scale, color="C3", width=0.003)
-        ax.quiverkey(q, 0.82, 1.03, ref, f"{ref:g} um", labelpos="E", coordinates="axes")
+        ax.quiverkey(q, 0.86, -0.11, ref, f"{ref:g} um", labelpos="E", coordinates="axes")
     for status, mk, col in (("missing", "o", "C0"), ("rejected", "x", "C1")):
         bad = [m for m in marks.values() if m.get("status") == status
                and m.get("film_x") is not None]
