@@ -103,3 +103,13 @@ def test_process_records_the_correction_check(tmp_path):
     d = np.asarray(chk["residual_um"])
     assert np.sqrt(np.mean(np.sum(d * d, axis=1))) == pytest.approx(r["loo_rms_um"], rel=1e-3)
     assert full["certificate"]["source"]
+
+
+def test_batch_table_names_its_columns():
+    from softplot.pipeline.batch import BatchReport
+
+    t = BatchReport(rows=[{"scan": "a.tif", "status": "done", "marks": 121, "measured": 121,
+                           "rms_px": 0.23, "method": "poly2", "loo_rms_um": 1.2,
+                           "seconds": 1.0}]).table()
+    assert "proj px" in t and "rms px" not in t
+    assert "projective film -> pixel model" in t and "leave-one-out" in t

@@ -22,7 +22,8 @@ from pathlib import Path
 from softplot.errors import SoftplotError
 
 #: columns of ``summary.csv``: scan path, status (done|failed|skipped), marks in the
-#: certificate, marks measured, detection RMS (px), correction method applied, its
+#: certificate, marks measured, residual RMS against the projective film -> pixel model (px;
+#: not the marks' precision, which is in each result as mark_sigma_px), correction method, its
 #: leave-one-out RMS (um on the film), QC (ok or the warnings), seconds, error message
 SUMMARY_FIELDS = ["scan", "status", "marks", "measured", "rms_px", "method", "loo_rms_um", "qc",
                   "seconds", "error"]
@@ -48,7 +49,7 @@ class BatchReport:
 
     def table(self) -> str:
         """The summary table printed at the end of a batch."""
-        lines = [f"{'scan':<32} {'status':<8} {'measured':>9} {'rms px':>8} {'method':<16} "
+        lines = [f"{'scan':<32} {'status':<8} {'measured':>9} {'proj px':>8} {'method':<16} "
                  f"{'LOO um':>7} {'s':>6}  qc / error"]
         for r in self.rows:
             meas = f"{r.get('measured', '')}/{r.get('marks', '')}" if r.get("marks") else ""
@@ -60,6 +61,8 @@ class BatchReport:
                 f"{(r.get('method') or '')[:16]:<16} {loo:>7} {sec:>6}  "
                 f"{r.get('error') or r.get('qc') or ''}"
             )
+        lines.append("proj px: residual RMS against one projective film -> pixel model; "
+                     "LOO um: the correction's leave-one-out RMS on the film")
         lines.append(
             f"{self.done} done, {self.failed} failed, {self.skipped} skipped (already done), "
             f"{self.seconds:.1f} s"

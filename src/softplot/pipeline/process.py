@@ -7,8 +7,8 @@
 2. cross-validate every film-correction method over the measured marks
    (:func:`softplot.correction.compare`: leave-one-out and checkerboard check residuals,
    micrometres on the film) and take the recommended one (or the one asked for);
-3. quality control: flags for missing / rejected marks, detection RMS and correction check
-   RMS over thresholds (:data:`QC_LIMITS`);
+3. quality control: flags for missing / rejected marks, the median mark precision and the
+   correction's leave-one-out RMS over thresholds (:data:`QC_LIMITS`);
 4. optionally write the film-flattened image (:func:`softplot.correction.write_resampled`);
 5. write ``<out>/<stem>.json`` atomically, ending with ``"complete": true``.
 
