@@ -41,6 +41,8 @@ WIDTH_RESOLVED = 1.5
 #: the profiles measure the arm length (line width) when their robust spread over the
 #: crosses is at most this fraction of it
 CONSISTENT = (0.1, 0.5)
+#: profiles and guess agree on the arm length within this fraction: the guess stands
+ARM_AGREE = 0.15
 #: profiles and guess agree on the line width within these ratios
 WIDTH_AGREE = (0.8, 1.25)
 
@@ -301,6 +303,9 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     if not sa <= CONSISTENT[0] * arm:
         # the crosses disagree about their size: scene content along the bars, not the marks
         return MarkGeometry(L0, w0, sa, sw, int(len(arms_a)), "certificate")
+    if abs(arm / L0 - 1.0) <= ARM_AGREE:
+        # within what a busy scene's profiles miss by: the guess stands
+        arm = L0
     if not sw <= CONSISTENT[1] * w:
         w = float("nan")  # the width is not measured: the guess stands (width_candidates)
     return MarkGeometry(arm, w, sa, sw, int(len(arms_a)), "scan", blur_px=sb)
