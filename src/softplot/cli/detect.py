@@ -38,8 +38,8 @@ def _out_path(base: Path | None, stem: str, many: bool, suffix: str) -> Path | N
               help="Write MicMac MeasuresIm-<image>.xml into this folder.")
 @click.option("--overwrite", is_flag=True, help="Replace existing result files.")
 @click.pass_context
-def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir, plot, micmac,
-            overwrite):
+def command(ctx, scans, camera, dpi, polarity, rotate, mirror, scene, json_out, out_dir, plot,
+            micmac, overwrite):
     """Detect and measure the reseau crosses or fiducial marks of SCAN...
 
     Prints one summary line per scan; the result JSON (keys: image, camera, width,
@@ -49,9 +49,9 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
     """
     from softplot.camera import load_camera
     from softplot.io import fingerprint, load_scan
-    from softplot.marks import detect
     from softplot.marks.micmac import micmac_name, write_measures_im
     from softplot.marks.qc import plot_qc
+    from softplot.mirror import MIRROR_NOTE, detect_oriented, mirror_symmetric, side_json
 
     cam = load_camera(camera)
     many = len(scans) > 1
@@ -76,9 +76,11 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
         p = Path(s)
         try:
             sc = load_scan(p)
-            det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=float(rotate), scene=scene)
+            det = detect_oriented(sc, cam, mirror=mirror, dpi=dpi, polarity=polarity,
+                                  rotate=float(rotate), scene=scene)
             doc = det.to_json()
             doc["scan"] = fingerprint(p)  # the scan it was made on, checked where it is used
+            doc.update(side_json(cam, mirror))
             if out_dir:
                 d = Path(out_dir)
                 d.mkdir(parents=True, exist_ok=True)
@@ -94,6 +96,9 @@ def command(ctx, scans, camera, dpi, polarity, rotate, scene, json_out, out_dir,
             if micmac:
                 write_measures_im(det, micmac)
             click.echo(det.summary())
+            if mirror_symmetric(cam):
+                given = "mirrored" if mirror else "not mirrored"
+                click.echo(f"note: {MIRROR_NOTE} (given: {given})")
         except SoftplotError as exc:
             if not many:
                 raise

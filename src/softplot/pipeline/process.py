@@ -85,6 +85,7 @@ def process_scan(
     rotate: float = 0.0,
     scene: str = "auto",
     crossval_methods=None,
+    mirror: bool = False,
 ) -> dict:
     """Detect, correct and check one scan; write ``<out_dir>/<stem>.json`` atomically.
 
@@ -107,6 +108,8 @@ def process_scan(
     polarity : {"auto", "positive", "negative"}
     rotate : float
         The photo is turned this much (degrees, counter-clockwise) in the scan.
+    mirror : bool
+        The scan is mirrored left-right (through the film base; :mod:`softplot.mirror`).
     scene : {"auto", "opening", "joint"}
         The scene estimate under each cross (see :func:`softplot.marks.detect`).
     crossval_methods : sequence of str, optional
@@ -133,7 +136,7 @@ def process_scan(
         write_resampled,
     )
     from softplot.io import fingerprint, load_scan
-    from softplot.marks import detect
+    from softplot.mirror import detect_oriented, side_json
     from softplot.pipeline.batch import write_json_atomic
 
     t0 = time.perf_counter()
@@ -145,8 +148,10 @@ def process_scan(
     if method is not None and method not in METHODS:
         raise SoftplotError(f"unknown correction method {method!r} (one of {', '.join(METHODS)})")
     sc = load_scan(scan)
-    det = detect(sc, cam, dpi=dpi, polarity=polarity, rotate=rotate, scene=scene)
+    det = detect_oriented(sc, cam, mirror=mirror, dpi=dpi, polarity=polarity, rotate=rotate,
+                          scene=scene)
     dj = det.to_json()
+    dj.update(side_json(cam, mirror))
     dj["image"] = str(scan)
     dj["scan"] = fingerprint(scan)  # the scan it was made on, checked where it is used
     marks = dj["marks"]
@@ -207,7 +212,8 @@ def process_scan(
         "camera": cam.name,
         "settings": settings_of({"camera": camera, "method": method, "flatten": flatten,
                                  "pixel_size_um": pixel_size_um, "dpi": dpi,
-                                 "polarity": polarity, "rotate": float(rotate), "scene": scene}),
+                                 "polarity": polarity, "rotate": float(rotate),
+                                 "mirror": bool(mirror), "scene": scene}),
         "status": "done",
         "width": sc.width,
         "height": sc.height,
