@@ -184,11 +184,20 @@ def test_with_interior_orientation_of_a_certificate(tmp_path):
     from softplot.orientation.interior import InteriorOrientation
     from softplot.pipeline.session import Session
 
-    io = InteriorOrientation("wild-rc10")
+    from softplot.camera import Distortion
+
+    # the built-in RC10 is uncalibrated (no distortion): a certificate's radial table here
+    cam = load_camera("wild-rc10").with_(
+        calibration="test certificate",
+        distortion=Distortion(model="radial-table",
+                              radius_mm=(0.0, 30.0, 60.0, 90.0, 120.0, 150.0),
+                              delta_r_um=(0.0, 2.0, 3.5, 3.0, 0.5, -3.0)),
+    )
+    io = InteriorOrientation(cam)
     t = aerial_pair(seed=19, c=load_camera("wild-rc10").c, deform=False)
     t.x0[:] = 0.0
     t.y0[:] = 0.0
-    m = affine_scan_map("wild-rc10")
+    m = affine_scan_map(cam)
     photos = [
         OrientedPhoto(t.X0[k], t.angles[k], t.c[k], 0.0, 0.0, m, m.inverse)
         for k in range(2)
