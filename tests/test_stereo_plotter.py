@@ -180,11 +180,9 @@ def test_with_interior_orientation_of_a_certificate(tmp_path):
     the corrections survive a session save/resume (as data: an identity film correction on
     the fiducials, then the certificate's interior orientation)."""
     from session_helpers import affine_scan_map
-    from softplot.camera import load_camera
+    from softplot.camera import Distortion, load_camera
     from softplot.orientation.interior import InteriorOrientation
     from softplot.pipeline.session import Session
-
-    from softplot.camera import Distortion
 
     # the built-in RC10 is uncalibrated (no distortion): a certificate's radial table here
     cam = load_camera("wild-rc10").with_(

@@ -184,3 +184,50 @@ def test_pc_two_planes_and_resect_name_the_blunder(tmp_path, capsys):
     d = json.loads((tmp_path / "b.json").read_text())
     assert d["snooping_test"]["test"] in ("baarda-w", "pope-tau")
     assert d["blunders"][0] == "F2"
+
+
+def _testfield(tmp_path, capsys, row, extra=()):
+    """A synthetic test-field project with a 30 um (15 sigma) blunder in x of observation ``row``;
+    returns the project folder and the blundered observation's ``PHOTO/POINT``."""
+    proj = tmp_path / "tf"
+    code, _, err = run(["calibrate", proj, "--make-synthetic", "--photos", "8", *extra], capsys)
+    assert code == 0, err
+    lines = (proj / "observations.csv").read_text().splitlines()
+    f = lines[row + 1].split(",")
+    f[2] = repr(float(f[2]) + 0.030)
+    lines[row + 1] = ",".join(f)
+    (proj / "observations.csv").write_text("\n".join(lines) + "\n")
+    return proj, f"{f[0]}/{f[1]}"
+
+
+def test_bundle_and_calibrate_name_the_blunder(tmp_path, capsys):
+    proj, obs = _testfield(tmp_path, capsys, 77)
+    for cmd in (["calibrate", proj, "--free", "c,x0,y0,k1"],
+                ["bundle", proj, "--free", "c,x0,y0,k1"]):
+        js = tmp_path / f"{cmd[0]}.json"
+        code, _, err = run([*cmd, "--json", js], capsys)
+        assert code == 0, err
+        d = json.loads(js.read_text())
+        _keys(d, "baarda-w")
+        assert d["snooping_test"]["critical_value"] == pytest.approx(3.29, abs=0.01)
+        assert d["blunders"][0] == obs
+        assert len(d["blunders"]) == d["flagged"]
+    # no redundancy numbers, no test: said so, nothing named
+    js = tmp_path / "interior.json"
+    code, _, err = run(["bundle", proj, "--free", "c,x0,y0,k1", "--covariance", "interior",
+                        "--json", js], capsys)
+    assert code == 0, err
+    d = json.loads(js.read_text())
+    assert d["snooping_test"]["test"] == "none" and d["blunders"] == []
+
+
+def test_calibrate_series_names_the_blunder_per_series(tmp_path, capsys):
+    proj, obs = _testfield(tmp_path, capsys, 5, ["--n-series", "2"])
+    js = tmp_path / "ser.json"
+    code, _, err = run(["calibrate", proj, "--series", "--free", "c,x0,y0,k1", "--json", js],
+                       capsys)
+    assert code == 0, err
+    ser = json.loads(js.read_text())["series"]
+    for s in ser:
+        _keys(s, "baarda-w")
+    assert obs in ser[0]["blunders"][:1] + ser[1]["blunders"][:1]

@@ -144,7 +144,45 @@ def command(
     txt = text_report(res, angle_unit=angle_unit, title=f"Bundle adjustment of {project}")
     emit_report(txt, report_out)
     if json_out:
-        write_json(res.to_json(), json_out)
+        write_json(with_snooping(res.to_json(), res, alpha), json_out)
     if residuals_out:
         write_residuals_csv(res, residuals_out)
     emit_plots(res, plots_dir)
+
+
+def snooping_keys(res, alpha0: float) -> dict:
+    """The ``blunders`` and ``snooping_test`` JSON keys of a bundle result.
+
+    The bundle tests every image coordinate with Baarda's w-test: ``w = v / (sigma sqrt(qvv))``
+    with the image standard errors of the project (``sigma_image_um`` in cameras.toml, or the
+    observations' own), i.e. an a priori standard error of unit weight of 1. ``blunders`` names
+    the flagged observations ``PHOTO/POINT``, the largest ``|w|`` first; the test is ``none``
+    when no redundancy numbers were computed (``--covariance interior``) or ``r = 0``.
+    """
+    import numpy as np
+
+    from softplot.adjust import Snooping, snooping_json
+
+    d = res.data
+    labels = [
+        f"{d.photo_names[f]}/{d.point_names[p]}"
+        for f, p in zip(d.obs_photo, d.obs_point, strict=True)
+    ]
+    w = np.asarray(res.w, dtype=float).ravel()  # (2m,): x, y of every observation
+    tested = bool(np.isfinite(w).any()) and res.redundancy > 0
+    sn = Snooping(
+        test="baarda-w" if tested else "none",
+        alpha0=float(alpha0),
+        critical_value=float(res.critical) if tested else float("nan"),
+        statistic=w if tested else np.full(w.size, np.nan),
+        flagged=(np.abs(np.nan_to_num(w, nan=0.0)) > res.critical) if tested
+        else np.zeros(w.size, bool),
+        sigma0=1.0,
+        redundancy=int(res.redundancy),
+    )
+    return snooping_json(sn, [lab for lab in labels for _ in range(2)])
+
+
+def with_snooping(js: dict, res, alpha0: float) -> dict:
+    """``js`` (a bundle result's JSON) with :func:`snooping_keys` added."""
+    return {**js, **snooping_keys(res, alpha0)}

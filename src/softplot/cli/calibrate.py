@@ -82,9 +82,13 @@ def command(
     if make_synthetic:
         _make(project, photos, n_series, noise_um, seed)
         return
+    from softplot.cli.bundle import snooping_keys, with_snooping
+    from softplot.orientation.bundle import BundleOptions
     from softplot.orientation.bundle_io import read_project
     from softplot.orientation.bundle_report import text_report
     from softplot.orientation.calibration import calibrate, calibrate_series
+
+    alpha0 = BundleOptions().alpha0
 
     inputs = project_inputs(project)
     for o in (json_out, report_out):
@@ -98,24 +102,29 @@ def command(
         if report_out:
             Path(report_out).write_text(txt + "\n", encoding="utf-8")
         if json_out:
-            write_json(sr.to_json(), json_out)
+            js = sr.to_json()
+            for entry, r in zip(js["series"], sr.results, strict=True):
+                entry.update(snooping_keys(r, alpha0))
+            write_json(js, json_out)
         return
     from softplot.adjust.sparse_bundle import LMOptions
-    from softplot.orientation.bundle import BundleOptions
 
     cb, close = lm_progress("calibration")
     try:
         res = calibrate(
             data,
             names,
-            BundleOptions(datum="control", lm=LMOptions(function_tolerance=1e-10, progress=cb)),
+            BundleOptions(
+                datum="control", alpha0=alpha0,
+                lm=LMOptions(function_tolerance=1e-10, progress=cb),
+            ),
         )
     finally:
         close()
     txt = text_report(res, angle_unit=angle_unit, title=f"Test-field calibration: {project}")
     emit_report(txt, report_out)
     if json_out:
-        write_json(res.to_json(), json_out)
+        write_json(with_snooping(res.to_json(), res, alpha0), json_out)
     emit_plots(res, plots_dir)
 
 
