@@ -171,3 +171,32 @@ def test_process_and_batch_resume_only_with_the_same_settings(tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
     assert run([*pbase, "--overwrite"]) == 0
     assert json.loads((out / "a.json").read_text())["settings"]["method"] is None
+
+
+def test_plot_export_never_overwrites_its_inputs(tmp_path, capsys):
+    """``plot export`` follows the output rule and never replaces a file the session read:
+    the operator-input CSV of a trace, the photos file of ``plot new``."""
+    photos = tmp_path / "photos.csv"
+    photos.write_text(
+        "photo,X0,Y0,Z0,omega,phi,kappa,c\nL,0,0,1700,0,0,0,152\nR,900,0,1700,0,0,0,152\n"
+    )
+    ops = tmp_path / "ops.csv"
+    ops.write_text("name,X,Y,px\na,10,5,80\nb,-20,30,85\n")
+    folder = tmp_path / "s"
+    assert run(["plot", "new", folder, "--photos", photos]) == 0
+    assert run(["plot", "trace", folder, "--input", ops, "--code", "SPOT"]) == 0
+    capsys.readouterr()
+    for i in (ops, photos):
+        before = i.read_bytes()
+        for extra in ([], ["--overwrite"]):
+            assert run(["plot", "export", folder, i, *extra]) == 2
+            err = capsys.readouterr().err
+            assert "input" in err and len(err.strip().splitlines()) == 1
+            assert i.read_bytes() == before
+    out = tmp_path / "new" / "f.csv"
+    assert run(["plot", "export", folder, out]) == 0 and out.is_file()
+    out.write_text("mine")
+    assert run(["plot", "export", folder, out]) == 2
+    assert "--overwrite" in capsys.readouterr().err and out.read_text() == "mine"
+    assert run(["plot", "export", folder, out, "--overwrite"]) == 0
+    assert out.read_text().count("\n") >= 3

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from softplot.cli._orient import ang_in, angles_option
+from softplot.cli._outputs import guard_outputs, overwrite_option
 from softplot.cli.restitute import PHOTO_COLUMNS, _read_csv
 from softplot.errors import SoftplotError
 
@@ -100,7 +101,13 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
             for n, r, m in zip(names, ph, maps, strict=True)
         ]
     )
-    Session.create(folder, model, mode=mode, height=height, left_offset=left_offset).close()
+    s = Session.create(folder, model, mode=mode, height=height, left_offset=left_offset)
+    try:
+        for p in (photos_path, left_detection, right_detection):
+            if p is not None:
+                s.note_input(p)
+    finally:
+        s.close()
     click.echo(f"session created in {folder} ({mode}"
                + (", with scans" if maps[0] is not None else "") + ")")
 
@@ -157,6 +164,7 @@ def trace(folder, input_path, code, kind, mode, height, close_line, port, timeou
             names, v = _read_csv(input_path, cols, "input file")
             if not names:
                 raise SoftplotError(f"input file {input_path} has no rows")
+            s.note_input(input_path)
             pl = s.plotter(mot)
             if kind != "point":
                 pl.begin(code, kind)
@@ -202,14 +210,20 @@ def resume(folder):
 @command.command("export")
 @click.argument("folder", type=click.Path(path_type=Path))
 @click.argument("out", type=click.Path(path_type=Path))
+@overwrite_option
 def export(folder, out):
-    """Write the session's features to OUT (.dxf, .geojson or .csv)."""
+    """Write the session's features to OUT (.dxf, .geojson or .csv).
+
+    OUT is never a session file nor a file the session was made from (its photos file,
+    operator-input CSVs, scans); an existing OUT is replaced only with --overwrite.
+    """
     from softplot.pipeline.session import Session
 
     s = Session.resume(folder)
     try:
         if s.owns(out):
             raise SoftplotError(f"{out} would overwrite a session file: choose another path")
+        guard_outputs([out], s.input_files())
         s.export(out)
         click.echo(f"{len(s.features)} feature(s) -> {out}")
     finally:

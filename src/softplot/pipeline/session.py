@@ -38,10 +38,11 @@ session was made on (size and modification time, else its sha256).
 
 Journal records (``type``): ``feature`` (a recorded :class:`Feature`), ``motors`` (motor
 state: targets, slack side, main carriage), ``mode`` (mode and contour height), ``fault``
-(what stopped the motors), ``resume``. Every record is written with one ``write`` of a full
-line followed by ``flush`` and :func:`os.fsync`, so after a crash (even ``kill -9``) the
-journal holds every record whose call had returned; a torn last line (a crash in the middle
-of a write) is dropped on resume.
+(what stopped the motors), ``resume``, ``input`` (an operator-input or photos file a command
+read for this session, absolute path: ``softplot plot export`` never writes over one). Every
+record is written with one ``write`` of a full line followed by ``flush`` and
+:func:`os.fsync`, so after a crash (even ``kill -9``) the journal holds every record whose
+call had returned; a torn last line (a crash in the middle of a write) is dropped on resume.
 
 :meth:`Session.resume` restores orientation, film corrections, mode, features and motor state
 without measuring anything again; given a :class:`~softplot.motors.base.Motors` it drives the
@@ -251,6 +252,7 @@ class Session:
         self.features: list[Feature] = []
         self.motor_state: dict | None = None
         self.faults: list[str] = []
+        self.inputs: list[str] = []
         self._fh = None
 
     # ----------------------------------------------------------- create / resume
@@ -401,6 +403,23 @@ class Session:
         return p in (f / SESSION_FILE, f / JOURNAL_FILE, f / PHOTOS_DIR, f) or (
             f / PHOTOS_DIR) in p.parents
 
+    def note_input(self, path) -> None:
+        """Journal ``path`` as a file read for this session (see :meth:`input_files`)."""
+        p = str(Path(path).resolve())
+        if p not in self.inputs:
+            self.inputs.append(p)
+            self._append({"type": "input", "path": p})
+
+    def input_files(self) -> list[Path]:
+        """Every file this session was made from: the files of :meth:`note_input` and the
+        scans named in session.json (absolute paths; they may no longer exist)."""
+        out = [Path(p) for p in self.inputs]
+        for side in SIDES:
+            rec = (self.meta.get("photos", {}).get(side) or {}).get("scan")
+            if rec and rec.get("path"):
+                out.append((self.folder / rec["path"]).resolve())
+        return out
+
     def scan_record(self, side: str) -> dict | None:
         """The ``scan`` entry of the ``side`` photo (name, size, sha256, width, height, dpi)."""
         self._photo(side)
@@ -433,6 +452,8 @@ class Session:
                 self.mode, self.height = rec["mode"], rec.get("height")
             elif kind == "fault":
                 self.faults.append(rec["message"])
+            elif kind == "input":
+                self.inputs.append(rec["path"])
 
     # ----------------------------------------------------------- journal
     def _append(self, rec: dict) -> None:
