@@ -63,7 +63,7 @@ OUTLIER_FLOOR_MM = 0.0025
 #: micrometre (no false rejection in the sweep down to 0.02 px): floor max(px, film mm)
 OUTLIER_FLOOR_INNER = (0.05, 0.0005)
 #: a reseau's measured crosses lie within this (film mm, rms) of a projective grid: three
-#: times the largest film deformation of issue 3 (100 um); more is not a reseau
+#: times the largest film deformation tested (100 um); more is not a reseau
 MAX_GRID_RMS_MM = 0.3
 #: a departure from the neighbours' prediction beyond this many times its expected size
 #: (:func:`_departure_model`: from the mark's own sigma and the scan's prediction error) is

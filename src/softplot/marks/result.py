@@ -1,4 +1,4 @@
-"""The detection result: one entry per certificate mark, and its JSON form (issue 3, point 2)."""
+"""The detection result: one entry per certificate mark, and its JSON form (docs/detection.md)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 DX is GRBL's X axis, DY its Y axis (Z unused). The driver works in GRBL *work* coordinates
 (G54): work mm = motor position in plate mm (backlash compensation is done above, in
-:class:`~softplot.motors.base.Motors`). Protocol facts: ``/work/shared/notes/grbl-protocol.md``;
+:class:`~softplot.motors.base.Motors`). Protocol facts: GRBL 1.1 (docs/motors.md);
 design and fault handling: ``docs/motors.md``.
 
 * A reader thread owns the receive side: ``ok`` / ``error:N`` complete the oldest line in

@@ -6,7 +6,7 @@ the GRBL 1.1 serial protocol on the master side from a background thread; any se
 given as ``link``) exactly as it would open ``/dev/ttyUSB0``. The real serial path of
 :class:`~softplot.motors.grbl.GrblMotors` is thus exercised end to end.
 
-What is simulated (see ``/work/shared/notes/grbl-protocol.md`` and docs/motors.md):
+What is simulated (the GRBL 1.1 serial protocol as docs/motors.md summarises it):
 
 * lines end with ``\\n`` or ``\\r``; one ``ok`` / ``error:N`` per line, ``\\r\\n`` endings;
   128-byte RX buffer (overflowing bytes are dropped, as on the AVR); 80-char line limit
