@@ -254,6 +254,14 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     near_l[:, :mL.shape[1]] = cv2.dilate(mL, win) > 0
     near_r = np.zeros(Rp.shape, bool)
     near_r[:, sh:sh + mR.shape[1]] = cv2.dilate(mR, win) > 0
+    # nor may it reach outside the format (the unexposed film border is not ground)
+    fmt = [_format_mask(geo, k, ph, m) for k, (ph, m) in
+           enumerate(zip((model.left, model.right), maps, strict=True))]
+    near_l[:, :fmt[0].shape[1]] |= cv2.dilate(1 - fmt[0], win) > 0
+    near_l[:, fmt[0].shape[1]:] = True
+    near_r[:, :sh] = True
+    near_r[:, sh:sh + fmt[1].shape[1]] |= cv2.dilate(1 - fmt[1], win) > 0
+    near_r[:, sh + fmt[1].shape[1]:] = True
     rr0, cc0 = np.mgrid[0:ok.shape[0], 0:ok.shape[1]]
     cr0 = np.clip(np.rint(cc0 - dl).astype(np.int64), 0, near_r.shape[1] - 1)
     ok &= ~near_l & ~near_r[rr0, cr0]
@@ -331,6 +339,22 @@ def _mark_mask(shape, m) -> np.ndarray:
     r = int(np.ceil(rad_mm / m.frame.pixel_mm)) + 2
     for x, y in mp:
         cv2.circle(mask, (int(round(x)), int(round(y))), r, 1.0, -1)
+    return mask
+
+
+def _format_mask(geo, k: int, photo, m, margin_mm: float = 0.2) -> np.ndarray:
+    """uint8 (rows, cols[k]) of normalised image k: 1 inside the photo format (shrunk by
+    ``margin_mm`` of film), 0 outside (the unexposed border, or beyond the scan)."""
+    fw, fh = m.correction.camera.format_mm
+    a, b = 0.5 * fw - margin_mm, 0.5 * fh - margin_mm
+    t = np.linspace(-1.0, 1.0, 65)
+    ring = np.vstack([np.c_[a * t, 0 * t + b], np.c_[0 * t + a, -b * t],
+                      np.c_[-a * t, 0 * t - b], np.c_[0 * t - a, b * t]])
+    ph = m.pixel_to_photo(m.correction.to_pixel(ring, frm="film")[0])
+    xn = geo.from_photo(k, ph, photo.M, photo.c, photo.x0, photo.y0)
+    px = geo.to_pixel(k, xn)
+    mask = np.zeros((geo.rows, geo.cols[k]), np.uint8)
+    cv2.fillPoly(mask, [np.rint(px * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
     return mask
 
 

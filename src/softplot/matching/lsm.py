@@ -144,7 +144,13 @@ def match_patches(left: np.ndarray, right: np.ndarray, left_xy, right_xy, affine
     with np.errstate(invalid="ignore", divide="ignore"):
         cond = np.linalg.cond(N[:, :6, :6]) if n else np.zeros(0)
         Q = np.linalg.pinv(N)
-        std = np.sqrt(np.maximum(s02[:, None] * Q[:, [0, 3], [0, 3]], 0.0))
+        # the grey-value residuals of neighbouring pixels are correlated (the optics' blur,
+        # the resampling of the right patch): Cov = s0^2 Q (J' C J) Q with C their
+        # correlation (pooled over all patches), not s0^2 Q
+        side = 2 * half + 1
+        C = _sandwich(J.reshape(n, side, side, 8), res.reshape(n, side, side), active)
+        cov = np.einsum("nij,njk,nkl->nil", Q, C, Q)
+        std = np.sqrt(np.maximum(s02[:, None] * cov[:, [0, 3], [0, 3]], 0.0))
         Tc = T - T.mean(axis=1, keepdims=True)
         Gc = G - G.mean(axis=1, keepdims=True)
         corr = np.sum(Tc * Gc, axis=1) / np.sqrt(np.sum(Tc * Tc, axis=1) * np.sum(Gc * Gc, axis=1))
@@ -156,3 +162,36 @@ def match_patches(left: np.ndarray, right: np.ndarray, left_xy, right_xy, affine
           & np.all(np.isfinite(std), axis=1))
     aff = np.stack([p[:, 1:3], p[:, 4:6]], axis=1)
     return PatchMatch(xy, std, corr, aff, ok)
+
+
+#: largest pixel lag of the residual correlation taken into account
+MAX_LAG = 3
+
+
+def _sandwich(J, res, use, max_lag: int = MAX_LAG) -> np.ndarray:
+    """``sum_pq J_p rho(p - q) J_q'`` (n, 8, 8) of patches J (n, s, s, 8), residuals
+    res (n, s, s); ``rho`` the residual correlation by pixel lag, pooled over the patches
+    ``use`` (each patch's residuals normalised by its own variance). Lags beyond
+    ``max_lag`` or where the pooled correlation is insignificant count as 0."""
+    n, s = res.shape[:2]
+    r = res - res.mean(axis=(1, 2), keepdims=True)
+    var = np.mean(r * r, axis=(1, 2))
+    pick = use & (var > 0)
+    if not pick.any():
+        pick = var > 0
+    rn = r[pick] / np.sqrt(var[pick])[:, None, None]
+    out = np.einsum("nabi,nabj->nij", J, J)  # lag 0 (rho = 1)
+    for dy in range(0, max_lag + 1):
+        for dx in range(-max_lag, max_lag + 1):
+            if dy == 0 and dx <= 0:
+                continue
+            ya, yb = slice(0, s - dy), slice(dy, s)
+            xa, xb = (slice(0, s - dx), slice(dx, s)) if dx >= 0 else (slice(-dx, s),
+                                                                     slice(0, s + dx))
+            a = rn[:, ya, xa]
+            rho = float(np.mean(a * rn[:, yb, xb])) if a.size else 0.0
+            if not abs(rho) > 2.0 / np.sqrt(max(a.size, 1)):
+                continue
+            M = np.einsum("nabi,nabj->nij", J[:, ya, xa], J[:, yb, xb])
+            out += rho * (M + M.transpose(0, 2, 1))
+    return out

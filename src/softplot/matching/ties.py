@@ -319,7 +319,9 @@ def _mutual_ratio(d1, d2, ratio):
     """Indices (i1, i2) passing the ratio test both ways and mutually nearest."""
     if len(d1) < 2 or len(d2) < 2:
         return np.zeros(0, int), np.zeros(0, int)
-    fl = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
+    # exact (brute force) nearest neighbours: the same matches on every machine and thread
+    # count (FLANN's randomised trees are not)
+    fl = cv2.BFMatcher(cv2.NORM_L2)
     f = fl.knnMatch(d1, d2, k=2)
     b = fl.knnMatch(d2, d1, k=2)
     best_b = np.full(len(d2), -1)
@@ -333,6 +335,25 @@ def _mutual_ratio(d1, d2, ratio):
                 i1.append(m[0].queryIdx)
                 i2.append(m[0].trainIdx)
     return np.array(i1, int), np.array(i2, int)
+
+
+def _separated(xy, score, dist: float) -> np.ndarray:
+    """Indices (sorted) of points at least ``dist`` apart (Chebyshev distance, px), best
+    ``score`` first (greedy)."""
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if len(xy) < 2:
+        return np.arange(len(xy))
+    tree = cKDTree(xy)
+    taken = np.zeros(len(xy), bool)
+    blocked = np.zeros(len(xy), bool)
+    for i in np.argsort(-np.asarray(score, float), kind="stable"):
+        if blocked[i]:
+            continue
+        taken[i] = True
+        blocked[tree.query_ball_point(xy[i], dist - 1e-9, p=np.inf)] = True
+    return np.flatnonzero(taken)
 
 
 def _spread(xy, score, shape, grid, k_max):
@@ -453,6 +474,10 @@ def match_pair(left, right, left_map, right_map, options: MatchOptions | None = 
     keep = _clear_of_marks(sl, maps[0].correction, pixel_mm[0], opt.half)
     keep &= _clear_of_marks(sr, maps[1].correction, pixel_mm[1], opt.half)
     sl, sr, score = sl[keep], sr[keep], score[keep]
+    # independent ties: no two templates overlap (overlapping patches share their noise and
+    # texture, so their errors are correlated and the orientation's precision optimistic)
+    sep = _separated(sl, score, 2 * opt.half + 2)
+    sl, sr, score = sl[sep], sr[sep], score[sep]
     sel = _spread(sl, score, greys[0].shape, opt.grid, opt.max_ties)
     sl, sr = sl[sel], sr[sel]
     counts["selected"] = int(len(sl))
