@@ -17,6 +17,8 @@ from softplot.motors import (
     MotorDisconnected,
     MotorError,
     MotorFault,
+    MotorLimitError,
+    MotorPositionLost,
     MotorTimeout,
 )
 from softplot.motors.grbl import GrblMotors, parse_status
@@ -65,23 +67,26 @@ def test_fault_spec_parsing():
 
 
 # --------------------------------------------------------------------------- normal use
-def test_connect_move_home_and_position(sim):
-    with GrblMotors(sim.path, timeout=2) as m:
-        assert m.status().state == "Idle"  # the alarm lock at power-up was cleared ($X)
-        assert "$X" in sim.log
-        m.move_to(1.23, -2.5)
-        assert m.position() == pytest.approx((1.23, -2.5))
-        assert sim.pos[:2] == pytest.approx([1.23, -2.5])
-        m.move_to(0.5, 0.5, wait=False)
-        assert m.wait(timeout=5)
-        assert m.position() == pytest.approx((0.5, 0.5))
+def test_connect_move_home_and_position():
+    sim = GrblSimulator(time_scale=20, settings={22: 1})  # homing on: locked at power-up
+    with sim, GrblMotors(sim.path, timeout=2) as m:
+        assert m.status().state == "Alarm" and "$X" not in sim.log  # never unlocked for us
+        with pytest.raises(MotorPositionLost, match="home the axes or confirm"):
+            m.move_to(1.0, 1.0)
         m.home()  # $H, work offset so that the homed position is plate (0, 0)
         assert m.position() == (0.0, 0.0)
         assert m.status().mpos[:2] == pytest.approx((-1.0, -1.0))  # pull-off
         assert m.status().wco[:2] == pytest.approx((-1.0, -1.0))
+        m.move_to(1.23, -2.5)
+        assert m.position() == pytest.approx((1.23, -2.5))
+        assert sim.pos[:2] == pytest.approx([0.23, -3.5])
+        m.move_to(0.5, 0.5, wait=False)
+        assert m.wait(timeout=5)
+        assert m.position() == pytest.approx((0.5, 0.5))
         m.move_to(2.0, 3.0)
         assert sim.pos[:2] == pytest.approx([1.0, 2.0])
         assert m.position() == pytest.approx((2.0, 3.0))
+        assert "$X" not in sim.log
 
 
 def test_wpos_reports_and_remembered_wco():
@@ -143,7 +148,7 @@ def test_stale_power_up_banner_keeps_replies_in_step(sim):
         time.sleep(0.01)  # the simulator's own power-up banner: in the pty, flushed at open
     time.sleep(0.05)
     sim._reset, sim._line = late_reset, slow_first_info
-    with GrblMotors(sim.path, timeout=5) as m:
+    with GrblMotors(sim.path, timeout=5, reset=True) as m:
         assert seen == {"reset": 1, "$I": 1}
         assert any(ln.startswith("[VER:") for ln in m.command("$I"))
         assert any(ln.startswith("[GC:") for ln in m.command("$G")) and not m._inflight
@@ -220,14 +225,18 @@ def test_stop_during_a_long_move(sim):
 
 
 def test_soft_limit_alarm_needs_a_reset():
-    with GrblSimulator(time_scale=20, settings={20: 1}) as s:
+    with GrblSimulator(time_scale=20, settings={20: 1, 22: 1}) as s:
         ax = AxisConfig(min_mm=-100, max_mm=100)
-        with GrblMotors(s.path, ax, ax, timeout=0.5) as m:
+        with GrblMotors(s.path, ax, ax, timeout=0.5, unlock=True) as m:
+            m.home()
+            with pytest.raises(MotorLimitError, match=r"machine 4.000 mm.*\[-200, 0\]"):
+                m.move_to(5.0, 0.0)  # machine travel is [-200, 0]: refused before sending
             with pytest.raises(MotorAlarm, match="ALARM:2"):
-                m.move_to(5.0, 0.0)  # machine travel is [-40, 0]: soft limit
-            with pytest.raises(MotorAlarm):
+                m.command("G90G0X5")  # sent anyway: the controller's critical alarm
+            with pytest.raises(MotorAlarm, match="ALARM:2"):
                 m.status()  # nothing answered, not even '?'
-            m.recover()
+            m.recover()  # reset; the soft limit kept the position, so $X (unlock=True)
+            assert any(ln.startswith("[GC:") for ln in m.command("$G"))  # the late ok absorbed
             m.move_to(-1.0, -1.0)
             assert m.position() == pytest.approx((-1.0, -1.0))
 
@@ -242,13 +251,21 @@ def test_fault_alarm_during_move(sim):
         with pytest.raises(MotorAlarm):
             m.move_to(0.0, 0.0)  # the fault sticks until recovered
         m.recover()
+        with pytest.raises(MotorPositionLost):
+            m.move_to(0.0, 0.0)  # a hard limit loses the position: home or confirm
+        m.confirm_position()
         assert m.position() == pytest.approx((2.0, 2.0))  # where the alarm stopped it
         m.move_to(0.0, 0.0)
         assert m.position() == (0.0, 0.0)
 
 
 def test_fault_lost_steps_detected_by_encoders(sim):
-    with GrblMotors(sim.path, check_encoders=True) as m:
+    with GrblMotors(sim.path) as m:  # a stock controller has no encoder read-out
+        with pytest.raises(MotorError, match=r"no encoder read-out \(\$ENC answered error:2\)"):
+            m.verify_encoders()
+    sim.stop()
+    sim = GrblSimulator(time_scale=20, encoders=True)  # an instrument with encoders
+    with sim, GrblMotors(sim.path, check_encoders=True) as m:
         m.move_to(1.0, 0.0)
         assert m.verify_encoders() == pytest.approx((1.0, 0.0))
         sim.inject("lost-steps=5@move1")
@@ -264,10 +281,12 @@ def test_fault_lost_steps_detected_by_encoders(sim):
 
 def test_fault_slow_replies():
     with GrblSimulator(time_scale=20, faults="slow=0.3") as s:
-        with pytest.raises(MotorTimeout, match="no GRBL banner"):
+        with pytest.raises(MotorTimeout, match="within 0.1 s"):
             GrblMotors(s.path, timeout=0.1)
         with GrblMotors(s.path, timeout=2) as m:
-            assert m.ping() >= 0.29
+            t0 = time.monotonic()
+            m.command("$G")
+            assert time.monotonic() - t0 >= 0.29
             m.move_to(0.2, 0.1)
             assert m.position() == pytest.approx((0.2, 0.1))
             m.timeout = 0.1

@@ -18,6 +18,7 @@ from softplot.motors.base import (  # noqa: F401
     MotorError,
     MotorFault,
     MotorLimitError,
+    MotorPositionLost,
     Motors,
     MotorTimeout,
 )

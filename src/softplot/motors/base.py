@@ -43,6 +43,7 @@ __all__ = [
     "MotorAlarm",
     "MotorCommandError",
     "LostSteps",
+    "MotorPositionLost",
 ]
 
 #: the driven axes, in order: secondary carriage of the left image
@@ -87,6 +88,12 @@ class MotorCommandError(MotorError):
 
 class LostSteps(MotorFault):
     """The encoders disagree with the commanded position by at least one step."""
+
+
+class MotorPositionLost(MotorFault):
+    """The controller's position cannot be trusted (a reboot, a power cycle, an alarm that
+    loses steps, a machine position that changed since it was saved): motion is refused
+    until the axes are homed again or the operator confirms the position."""
 
 
 @dataclass(frozen=True)
@@ -316,18 +323,39 @@ class Motors(ABC):
         return self._main
 
     def state(self) -> dict:
-        """Motor state to save in a session: targets, directions, main carriage."""
+        """Motor state to save in a session: targets, directions, main carriage (and, for a
+        controller, the frame its position was in: see :meth:`_reference`)."""
         with self._lock:
-            return {
+            st = {
                 "target_steps": list(self._target),
                 "direction": list(self._dir),
                 "main": list(self._main),
                 "resolution_mm": list(self.resolution),
             }
+        ref = self._reference()
+        if ref is not None:
+            st["controller"] = ref
+        return st
+
+    def _reference(self) -> dict | None:
+        """Backend data that tells whether a saved position is still valid (None: always)."""
+        return None
+
+    def _check_reference(self, state: dict) -> None:  # noqa: B027 - optional hook
+        """Raise :class:`MotorPositionLost` if ``state`` was saved in another frame than the
+        backend's present one (nothing to check by default)."""
 
     def restore(self, state: dict) -> None:
         """Re-establish a saved :meth:`state`: drive to the saved target (approaching from
-        the saved direction so the slack sits on the same side) and set the main carriage."""
+        the saved direction so the slack sits on the same side) and set the main carriage.
+
+        Raises
+        ------
+        MotorPositionLost
+            The backend cannot vouch that its position is in the saved frame (e.g. a
+            controller that was reset or power-cycled since); nothing moves.
+        """
+        self._check_reference(state)
         res = self.resolution
         tgt = [s * r for s, r in zip(state["target_steps"], res, strict=True)]
         dirs = state.get("direction", [1, 1])
