@@ -126,11 +126,14 @@ def test_motor_fault_is_journaled_and_session_kept(tmp_path):
     s = Session.create(tmp_path / "f", model, mode="contour", height=300.0)
     pl = s.plotter(mot)
     pts = t.film(1, t.contour_truth(300.0, 6))
-    pl.cycle(*pts[0])
-    pl.record_point("P")
+    pl.begin("C300")
+    for X, Y in pts[:2]:
+        pl.cycle(X, Y)
+        pl.vertex()
+    pl.end()
     mot.armed = True
     with pytest.raises(PlotterHalted, match="ALARM:1"):
-        pl.cycle(*pts[1])
+        pl.cycle(*pts[2])
     s.close()
     r = Session.resume(tmp_path / "f")
     assert len(r.features) == 1

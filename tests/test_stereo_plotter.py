@@ -136,16 +136,18 @@ class _FailingMotors(VirtualMotors):
 
 def test_motor_fault_stops_and_keeps_features():
     t = aerial_pair(seed=17, deform=False)
-    mot = _FailingMotors(FINE, FINE, fail_after=3)
+    mot = _FailingMotors(FINE, FINE, fail_after=4)
     faults = []
     pl = Plotter(_model(t, False), mot, mode="contour", height=300.0, on_fault=faults.append)
     pts = t.film(1, t.contour_truth(300.0, 10))
-    pl.cycle(*pts[0])
-    pl.record_point("A")
-    pl.cycle(*pts[1])
-    pl.record_point("A")
+    for k in (0, 2):  # two contour pieces of two vertices
+        pl.begin("A")
+        for X, Y in pts[k:k + 2]:
+            pl.cycle(X, Y)
+            pl.vertex()
+        pl.end()
     with pytest.raises(PlotterHalted, match="ALARM:1.*motors stopped.*2 features"):
-        for X, Y in pts[2:]:
+        for X, Y in pts[4:]:
             pl.cycle(X, Y)
     assert mot.stopped
     assert len(faults) == 1 and "hard limit" in faults[0]

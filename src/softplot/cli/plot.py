@@ -134,9 +134,11 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
     "--mode",
     type=click.Choice(["single", "contour", "free"]),
     default=None,
-    help="Switch mode first (default: the session's).",
+    help="Mode of this trace only (default: the session's; `softplot plot mode` changes "
+    "the session's).",
 )
-@click.option("--height", type=float, default=None, help="Contour height.")
+@click.option("--height", type=float, default=None,
+              help="Contour height of this trace only (object units).")
 @click.option("--close", "close_line", is_flag=True, help="Close the line/contour.")
 @click.option(
     "--port",
@@ -146,43 +148,86 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
 @click.option("--timeout", type=float, default=5.0, show_default=True,
               help="Seconds to wait for the carriage to reach each point.")
 def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout):
-    """Run the plotter over scripted operator input and record features in FOLDER."""
+    """Run the plotter over scripted operator input and record features in FOLDER.
+
+    A row whose point the carriage cannot reach (outside its travel or the model) is not
+    recorded; one line names it.
+    """
     from softplot.pipeline.session import Session
+    from softplot.stereo.plotter import NotReached
 
     with _motors(port, timeout) as mot:
         s = Session.resume(folder, motors=mot)
         try:
-            if mode is not None or height is not None:
-                s.set_mode(mode or s.mode, height if height is not None else s.height)
-            if kind == "contour" and s.mode != "contour":
+            tmode = mode or s.mode
+            theight = height if height is not None else s.height
+            if kind == "contour" and tmode != "contour":
                 raise SoftplotError(
                     "contours are traced in contour mode (--mode contour --height H)"
                 )
-            if s.mode == "contour" and s.height is None:
+            if kind == "point" and tmode == "contour":
+                raise SoftplotError(
+                    "a spot height is not measured in contour mode (the mark is held at the "
+                    "contour height): give --mode single or free"
+                )
+            if tmode == "contour" and theight is None:
                 raise SoftplotError("contour mode needs --height")
-            cols = ("name", "X", "Y", "px") if s.mode == "single" else ("name", "X", "Y")
+            cols = ("name", "X", "Y", "px") if tmode == "single" else ("name", "X", "Y")
             names, v = _read_csv(input_path, cols, "input file")
             if not names:
                 raise SoftplotError(f"input file {input_path} has no rows")
             s.note_input(input_path)
             pl = s.plotter(mot)
+            pl.reach_timeout = timeout
+            pl.set_mode(tmode, theight)  # this trace only: the session keeps its mode
+            n0, missed = len(s.features), []
             if kind != "point":
                 pl.begin(code, kind)
             for name, row in zip(names, v, strict=True):
-                cyc = pl.cycle(row[0], row[1], row[2] if s.mode == "single" else None)
-                if kind == "point":
-                    pl.record_point(code, name=name)
-                else:
-                    pl.vertex()
-                if not cyc.in_travel:
-                    click.echo(f"warning: {name}: DX/DY outside the travel", err=True)
+                pl.cycle(row[0], row[1], row[2] if tmode == "single" else None)
+                try:
+                    if kind == "point":
+                        pl.record_point(code, name=name)
+                    else:
+                        pl.vertex()
+                except NotReached as exc:
+                    missed.append(name)
+                    click.echo(f"warning: {name}: not recorded: {exc}", err=True)
             if kind != "point":
                 pl.end(close=close_line)
             if port:
                 mot.wait(timeout)
-            click.echo(f"{len(names)} input row(s) -> {len(s.features)} feature(s) in {folder}")
+            click.echo(
+                f"{len(names)} input row(s) -> {len(s.features) - n0} new feature(s) in "
+                f"{folder}" + (f"; {len(missed)} row(s) not recorded" if missed else "")
+                + (f" (mode {tmode} for this trace; the session's is {s.mode})"
+                   if tmode != s.mode else "")
+            )
         finally:
             s.close()
+
+
+@command.command("mode")
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.argument("mode", type=click.Choice(["single", "contour", "free"]))
+@click.option("--height", type=float, default=None,
+              help="Contour height (object units), needed in contour mode.")
+def set_mode(folder, mode, height):
+    """Change the session's mode (and contour height) for the traces that follow."""
+    import math
+
+    from softplot.pipeline.session import Session
+
+    s = Session.resume(folder)
+    try:
+        if height is None and mode == "contour":
+            height = s.height
+        if mode == "contour" and (height is None or not math.isfinite(height)):
+            raise SoftplotError("contour mode needs --height")
+        s.set_mode(mode, height)
+        click.echo(f"session mode {mode}" + (f", height {height:g}" if mode == "contour" else ""))
+    finally:
+        s.close()
 
 
 @command.command("resume")

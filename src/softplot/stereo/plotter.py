@@ -27,6 +27,15 @@ Recording: :meth:`Plotter.record_point` (spot height), :meth:`Plotter.begin` /
 :meth:`Plotter.vertex` / :meth:`Plotter.end` (3D lines and contours), each with a feature
 code. Finished features go to ``on_feature`` (the session journal fsyncs them).
 
+What is recorded is what was measured. A spot height is the model point under the mark, so
+it is refused where the mark was placed in contour mode (there it is held at Z = height
+whatever the terrain; a contour vertex is on the contour height by definition). A point or
+vertex is recorded only when the mark stands on it: the secondary carriage reached its
+target (the motors are waited for, then their position compared with the target, to half a
+step) and the point is in the model (the rays meet in front of both cameras; with scans, the
+mark is on both scans). Otherwise :class:`NotReached` says why in one line and nothing is
+recorded.
+
 A motor fault (:class:`~softplot.motors.base.MotorFault`) stops the motors, is reported to
 ``on_fault`` and raised as :class:`PlotterHalted` with a one-line message; the recorded
 features are untouched. :meth:`Plotter.recover` clears the halt.
@@ -43,7 +52,7 @@ from softplot.export.features import Feature
 from softplot.motors.base import MotorFault, MotorLimitError, Motors
 from softplot.stereo.model import StereoModel
 
-__all__ = ["Plotter", "Cycle", "PlotterHalted", "MODES"]
+__all__ = ["Plotter", "Cycle", "PlotterHalted", "NotReached", "MODES"]
 
 MODES = ("single", "contour", "free", "drive-to")
 
@@ -52,17 +61,23 @@ class PlotterHalted(SoftplotError):
     """A motor fault stopped the plotter; the session is kept."""
 
 
+class NotReached(SoftplotError):
+    """The mark is not on a measurable point (carriage not at its target, outside the travel
+    or the model): nothing was recorded."""
+
+
 class Cycle:
     """The state of the floating mark after one cycle (instrument mm, photo mm, object)."""
 
-    __slots__ = ("X", "Y", "DX", "DY", "x1", "y1", "x2", "y2", "XYZ", "py", "in_travel")
+    __slots__ = ("X", "Y", "DX", "DY", "x1", "y1", "x2", "y2", "XYZ", "py", "in_travel", "mode")
 
-    def __init__(self, X, Y, DX, DY, x1, y1, x2, y2, XYZ, py, in_travel=True):
+    def __init__(self, X, Y, DX, DY, x1, y1, x2, y2, XYZ, py, in_travel=True, mode="single"):
         self.X, self.Y, self.DX, self.DY = X, Y, DX, DY
         self.x1, self.y1, self.x2, self.y2 = x1, y1, x2, y2
         self.XYZ = XYZ
         self.py = py
         self.in_travel = in_travel
+        self.mode = mode  # how the mark was placed: single, contour, free or drive-to
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__slots__}
@@ -87,6 +102,9 @@ class Plotter:
     left_offset : (float, float)
         Fixed offset (BX, BY) of the left plate, instrument mm: left film =
         main carriage + offset + (DX, DY).
+    reach_timeout : float, optional
+        Seconds a recording waits for the secondary carriage to reach its target (None: no
+        limit); past it the point is not recorded (:class:`NotReached`).
     """
 
     def __init__(
@@ -99,8 +117,10 @@ class Plotter:
         on_feature: Callable[[Feature], None] | None = None,
         on_fault: Callable[[str], None] | None = None,
         left_offset: tuple[float, float] = (0.0, 0.0),
+        reach_timeout: float | None = 10.0,
     ):
         self.model = model
+        self.reach_timeout = reach_timeout
         self.fast = model.fast()
         self.motors = motors
         self.on_feature = on_feature
@@ -159,7 +179,8 @@ class Plotter:
             r = self.model.free(self._to_photo(0, Xl + DX, Yl + DY), self._to_photo(1, X, Y))
             x1, y1 = r.xy1[0]
             x2, y2 = r.xy2[0]
-            cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, tuple(r.XYZ[0]), float(r.py[0]))
+            cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, tuple(r.XYZ[0]), float(r.py[0]),
+                        mode="free")
             self.current = cyc
             return cyc
         if self.identity:
@@ -192,7 +213,7 @@ class Plotter:
             in_travel = False
         except MotorFault as exc:
             self._fault(exc)
-        cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, (XX, YY, ZZ), 0.0, in_travel)
+        cyc = Cycle(X, Y, DX, DY, x1, y1, x2, y2, (XX, YY, ZZ), 0.0, in_travel, mode)
         self.current = cyc
         return cyc
 
@@ -251,7 +272,8 @@ class Plotter:
             in_travel = False
         except MotorFault as exc:
             self._fault(exc)
-        cyc = Cycle(fx2, fy2, DX, DY, x1, y1, x2, y2, (X, Y, Z), float(r.py[0]), in_travel)
+        cyc = Cycle(fx2, fy2, DX, DY, x1, y1, x2, y2, (X, Y, Z), float(r.py[0]), in_travel,
+                    "drive-to")
         self.current = cyc
         return cyc
 
@@ -286,8 +308,23 @@ class Plotter:
         return feat
 
     def record_point(self, code: str, **attributes) -> Feature:
-        """Record the current mark as a spot height with ``code``."""
+        """Record the current mark as a spot height with ``code``.
+
+        Raises
+        ------
+        SoftplotError
+            When the mark was placed in contour mode (held at the contour height, not on the
+            terrain; a mark driven to an object point, :meth:`drive_to`, is that point).
+        NotReached
+            The carriage did not reach the mark's target, or the mark is outside the model.
+        """
         cyc = self._need_current()
+        if cyc.mode == "contour":
+            raise SoftplotError(
+                f"a spot height is not measured in contour mode (the mark is held at Z = "
+                f"{cyc.XYZ[2]:g} whatever the terrain): switch to single or free mode"
+            )
+        self.check_reached(cyc)
         return self._emit(Feature(code, "point", [cyc.XYZ], self._attrs(cyc, attributes)))
 
     def begin(self, code: str, kind: str | None = None, **attributes) -> None:
@@ -308,6 +345,7 @@ class Plotter:
         if self._open is None:
             raise SoftplotError("vertex: no line open (call begin first)")
         cyc = self._need_current()
+        self.check_reached(cyc)
         self._open[2].append(cyc.XYZ)
         self._open[3].append((cyc.x1, cyc.y1, cyc.x2, cyc.y2))
         return len(self._open[2])
@@ -325,6 +363,66 @@ class Plotter:
         attrs = dict(self._open_attrs)
         attrs["image_points"] = [list(map(float, p)) for p in img]
         return self._emit(Feature(code, kind, verts, attrs))
+
+    def check_reached(self, cyc: Cycle | None = None) -> None:
+        """Raise :class:`NotReached` unless the mark of ``cyc`` (default: the current one) is
+        a measurable point: in the travel, in the model, and the carriage at its target
+        (waited for up to :attr:`reach_timeout` s; a motor fault halts as in :meth:`cycle`)."""
+        cyc = self._need_current() if cyc is None else cyc
+        if not cyc.in_travel:
+            raise NotReached(
+                f"the secondary carriage cannot reach DX = {cyc.DX:.3f}, DY = {cyc.DY:.3f} mm "
+                "(outside its travel)"
+            )
+        problem = self._model_problem(cyc)
+        if problem is not None:
+            raise NotReached(problem)
+        mot = self.motors
+        try:
+            settled = mot.wait(self.reach_timeout)
+        except MotorFault as exc:
+            self._fault(exc)
+        if not settled:
+            raise NotReached(
+                f"the secondary carriage did not reach DX = {cyc.DX:.3f}, DY = {cyc.DY:.3f} mm "
+                f"within {self.reach_timeout:g} s"
+            )
+        (tx, ty), (px, py), (rx, ry) = mot.target(), mot.position(), mot.resolution
+        if cyc.mode != "free" and (abs(tx - cyc.DX) > 0.5 * rx + 1e-12
+                                    or abs(ty - cyc.DY) > 0.5 * ry + 1e-12):
+            raise NotReached(
+                f"the secondary carriage was not sent to DX = {cyc.DX:.3f}, DY = {cyc.DY:.3f} "
+                f"mm (its target is {tx:.3f}, {ty:.3f})"
+            )
+        if abs(px - tx) > 0.5 * rx + 1e-12 or abs(py - ty) > 0.5 * ry + 1e-12:
+            raise NotReached(
+                f"the secondary carriage stands at DX = {px:.3f}, DY = {py:.3f} mm, not at its "
+                f"target {tx:.3f}, {ty:.3f}"
+            )
+
+    def _model_problem(self, cyc: Cycle) -> str | None:
+        """Why the mark of ``cyc`` is not a model point (None if it is): no finite
+        intersection, behind a camera, or off a scan."""
+        XYZ = np.asarray(cyc.XYZ, dtype=float)
+        if not np.all(np.isfinite(XYZ)):
+            return "no model point under the mark (the rays do not meet)"
+        bx, by = self.left_offset
+        films = ((cyc.X + bx + cyc.DX, cyc.Y + by + cyc.DY), (cyc.X, cyc.Y))
+        for side, photo, xy, film in zip(
+            ("right", "left"), (self.model.right, self.model.left),
+            ((cyc.x2, cyc.y2), (cyc.x1, cyc.y1)), films[::-1], strict=True,
+        ):
+            if float(photo.ray([xy])[0] @ (XYZ - photo.X0)) <= 0:
+                return f"outside the model: the point is behind the {side} camera"
+            frame = getattr(photo.to_photo, "frame", None)
+            if frame is not None:
+                u, v = frame.to_pixel(np.array([film], dtype=float))[0]
+                if not (-0.5 <= u <= frame.width - 0.5 and -0.5 <= v <= frame.height - 0.5):
+                    return (
+                        f"outside the model: the mark is off the {side} scan (pixel "
+                        f"{u:.0f}, {v:.0f} of {frame.width} x {frame.height})"
+                    )
+        return None
 
     def _need_current(self) -> Cycle:
         if self.current is None:
