@@ -195,3 +195,46 @@ def test_readme_tour_runs(tmp_path):
         r = subprocess.run(["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True,
                            text=True, timeout=600)
         assert r.returncode == 0, f"{line}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+
+
+def test_named_tests_and_files_exist():
+    """Every test, tool and repository file the user docs name (`tests/x.py::test_y`,
+    `test_y`, `tools/z.py`) exists, so that "verified by" stays true."""
+    defs = set()
+    for path in (ROOT / "tests").rglob("*.py"):
+        defs.update(re.findall(r"def (test_\w+)", path.read_text()))
+    bad = []
+    for doc in USER_DOCS:
+        text = doc.read_text()
+        for m in re.finditer(r"\b((?:tests|tools|src|data)/[\w./-]+\.(?:py|md|json|tif|toml|csv))"
+                             r"(?:::(\w+))?", text):
+            path, func = ROOT / m.group(1), m.group(2)
+            if "*" in m.group(1):
+                continue
+            if not path.exists():
+                bad.append(f"{doc.name}: {m.group(1)} does not exist")
+            elif func and not re.search(rf"def {func}\b", path.read_text()):
+                bad.append(f"{doc.name}: {m.group(1)} has no {func}")
+        bad += [f"{doc.name}: no test {name}" for name in re.findall(r"`(?:::)?(test_\w+)`", text)
+                if name not in defs]
+    assert not bad, bad
+
+
+def test_documented_tool_options_exist():
+    """Every `tools/X.py --option` the user docs give runs: the tool's --help lists the option."""
+    uses: dict[str, set[str]] = {}
+    for doc in USER_DOCS:
+        for m in re.finditer(r"(tools/\w+\.py)((?:[ \t]+(?:\\\n\s*)?[^\s`]+)*)", doc.read_text()):
+            uses.setdefault(m.group(1), set()).update(
+                re.findall(r"(?<![\w-])(--[a-z][\w-]*)", m.group(2)))
+    assert len(uses) >= 5
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src") + os.pathsep
+           + os.environ.get("PYTHONPATH", ""), "OPENBLAS_NUM_THREADS": "1"}
+    bad = []
+    for tool, options in sorted(uses.items()):
+        r = subprocess.run([sys.executable, str(ROOT / tool), "--help"], env=env, cwd=ROOT,
+                           capture_output=True, text=True, timeout=120)
+        if r.returncode:
+            bad.append(f"{tool} --help: exit {r.returncode}: {r.stderr[-300:]}")
+        bad += [f"{tool}: no {o}" for o in sorted(options) if o not in r.stdout]
+    assert not bad, bad
