@@ -86,7 +86,54 @@ njit = kernels.njit
 
 @njit(fastmath=True, cache=True, nogil=True)
 def _blur(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
-    # separable Gaussian, edges replicated (``row``: a buffer of w + 2 r)
+    # separable Gaussian, edges replicated (``row``: a buffer of w + 2 max(r, 4))
+    if r > 4:
+        _blur_any(src, dst, tmp, row, k, r, h, w)
+        return
+    # up to 9 taps (r <= 4, the blurs of real scans): the taps as scalars, zero-padded to 9,
+    # each output one expression over the pixels: it vectorises (about twice as fast as the
+    # loop over the taps, the same sums)
+    z = np.float32(0.0)
+    k0 = k[r - 4] if r >= 4 else z
+    k1 = k[r - 3] if r >= 3 else z
+    k2 = k[r - 2] if r >= 2 else z
+    k3 = k[r - 1]
+    k4 = k[r]
+    k5 = k[r + 1]
+    k6 = k[r + 2] if r >= 2 else z
+    k7 = k[r + 3] if r >= 3 else z
+    k8 = k[r + 4] if r >= 4 else z
+    for i in range(h):
+        s = src[i]
+        for j in range(4):
+            row[j] = s[0]
+            row[w + 4 + j] = s[w - 1]
+        for j in range(w):
+            row[4 + j] = s[j]
+        d = tmp[i]
+        for j in range(w):
+            d[j] = (k0 * row[j] + k1 * row[j + 1] + k2 * row[j + 2] + k3 * row[j + 3]
+                    + k4 * row[j + 4] + k5 * row[j + 5] + k6 * row[j + 6] + k7 * row[j + 7]
+                    + k8 * row[j + 8])
+    for i in range(h):
+        r0 = tmp[max(i - 4, 0)]
+        r1 = tmp[max(i - 3, 0)]
+        r2 = tmp[max(i - 2, 0)]
+        r3 = tmp[max(i - 1, 0)]
+        r4 = tmp[i]
+        r5 = tmp[min(i + 1, h - 1)]
+        r6 = tmp[min(i + 2, h - 1)]
+        r7 = tmp[min(i + 3, h - 1)]
+        r8 = tmp[min(i + 4, h - 1)]
+        d = dst[i]
+        for j in range(w):
+            d[j] = (k0 * r0[j] + k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j]
+                    + k5 * r5[j] + k6 * r6[j] + k7 * r7[j] + k8 * r8[j])
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _blur_any(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
+    # ``_blur`` for any radius (``row``: a buffer of w + 2 r)
     for i in range(h):
         for j in range(r):
             row[j] = src[i, 0]
@@ -133,7 +180,7 @@ def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover
     tmp = np.empty((h, w), np.float32)
     W = np.empty((h, w), np.float32)
     f = np.empty((h, w), np.float32)
-    row = np.empty(w + 2 * r, np.float32)
+    row = np.empty(w + 2 * max(r, 4), np.float32)
     for q in range(n):
         il = one / mu[q]
         for i in range(h):
@@ -244,7 +291,7 @@ def _kernel_band(g, T, m, B0, mu, k, iters, tau, sig, lo, hi, out,
     tmp = np.zeros((h, w), np.float32)
     W = np.empty((h, w), np.float32)
     f = np.empty((h, w), np.float32)
-    row = np.empty(w + 2 * r, np.float32)
+    row = np.empty(w + 2 * max(r, 4), np.float32)
     nlo = np.empty(h, np.int64)
     nhi = np.empty(h, np.int64)
     for q in range(n):
