@@ -109,11 +109,13 @@ def _user_visible_source_text(path: Path) -> list[tuple[int, str]]:
     return out
 
 
-def test_no_development_log_in_source_docstrings():
-    """Module, class and function docstrings and comments of softplot name no machine path, no
-    issue number and no development session."""
+def test_no_development_log_in_source_and_tools():
+    """Module, class and function docstrings and comments of softplot and of the benchmark tools
+    (whose --help the docs send users to) name no machine path, no issue number and no
+    development session."""
     hits = []
-    for path in sorted((ROOT / "src" / "softplot").rglob("*.py")):
+    for path in [*sorted((ROOT / "src" / "softplot").rglob("*.py")),
+                 *sorted((ROOT / "tools").glob("*.py"))]:
         for lineno, line in _user_visible_source_text(path):
             if DEV_WORDS.search(line):
                 hits.append(f"{path.relative_to(ROOT)}:{lineno}: {line.strip()[:100]}")

@@ -1,4 +1,4 @@
-"""Benchmark of the film correction (issue 4, point 8).
+"""Benchmark of the film correction (docs/benchmarks.md; --accuracy: docs/accuracy.md).
 
     .venv/bin/python tools/bench_correct.py [--points 2000000] [--repeat 7] [--json OUT.json]
 

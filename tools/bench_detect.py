@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark ``softplot detect`` (issue 3, point 7): speed and peak memory.
+"""Benchmark ``softplot detect``: speed and peak memory (docs/benchmarks.md, "Detection").
 
 Writes its inputs to a temporary folder first, then times N runs of *load + detect* in this
 process and prints medians (the first run is a warm-up and not counted). Peak memory is
@@ -14,7 +14,7 @@ measured in fresh subprocesses, one per figure, each as a multiple of the scan's
 * ``RSS scan``: the same after a warm-up detection on a small scan of the same camera (so the
   library code is resident before the mark is reset), plus the anonymous memory the warm-up
   left behind (which the measured run may have reused): an upper bound of the memory the scan
-  itself costs, its pixels included. This is the figure held against issue 3's "peak memory
+  itself costs, its pixels included. This is the figure held against the target "peak memory
   at most 3x the scan's pixel bytes";
 * ``traced``: the ``tracemalloc`` peak of Python/NumPy allocations (not OpenCV's own buffers
   nor file pages).
@@ -26,7 +26,7 @@ Cases
 * ``rollei-1200``: the same at 1200 dpi.
 * ``rollei-1200-busy``, ``rollei-2400-busy``: the same over a busy scene (blocks, roads,
   discs): ``detect`` takes the joint scene estimate there (``scene="auto"``), which costs
-  3-5 times the fine stage; not a case of issue 3's point 7, which names no scene (the
+  3-5 times the fine stage; not a case of the speed targets, which name no scene (the
   other Rollei cases have the renderer's default texture).
 * ``aerial-19k``: a 19200 x 19200 px 8-bit scan (230 mm at 12 um) of a Zeiss RMK A 15/23
   frame: a smooth grey background with grain and the 8 fiducials (4 circle-dots, 4 crosses)
