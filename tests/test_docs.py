@@ -5,6 +5,7 @@ exists; the README says what a newcomer needs; and the README tour runs, command
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shlex
@@ -197,6 +198,51 @@ def test_readme_tour_runs(tmp_path):
         r = subprocess.run(["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True,
                            text=True, timeout=600)
         assert r.returncode == 0, f"{line}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+    _demo_figures_match_accuracy_md(json.loads((tmp_path / "tour" / "demo.json").read_text()))
+
+
+#: rows of docs/accuracy.md's demo table -> the keys of the demo's `demo.json`, in the order
+#: the row gives its numbers
+DEMO_ROWS = {
+    "detection RMS": ["detection_rms_px"],
+    "film correction": ["correction_rms_um", "correction_rms_reseau_um"],
+    "relative orientation sigma0": ["relative_sigma0_um"],
+    "absolute orientation sigma0": ["absolute_sigma0"],
+    "check points after absolute orientation": ["check_rms_m"],
+    "contour height error": ["contour_height_rms_m", "contour_height_max_m"],
+    "height of the floating mark": ["contour_mark_height_rms_m"],
+    "plan error of the recorded vertices": ["contour_plan_rms_m"],
+}
+
+
+def _demo_figures_match_accuracy_md(result: dict) -> None:
+    """docs/accuracy.md gives the figures `softplot demo` prints today (each to the last digit
+    it shows, one unit of that digit allowed for rounding)."""
+    text = (ROOT / "docs" / "accuracy.md").read_text()
+    section = text[text.index("## End to end: the demo chain"):]
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 2:
+            rows[cells[0]] = cells[1]
+    bad = []
+    for start, keys in DEMO_ROWS.items():
+        label = next((k for k in rows if k.startswith(start)), None)
+        if label is None:
+            bad.append(f"no row '{start}'")
+            continue
+        want = []
+        for k in keys:
+            want += result[k] if isinstance(result[k], list) else [result[k]]
+        shown = re.findall(r"\d+\.\d+", rows[label])[:len(want)]
+        if len(shown) < len(want):
+            bad.append(f"{start}: {rows[label]}")
+            continue
+        for s, w in zip(shown, want, strict=True):
+            unit = 10.0 ** -len(s.split(".")[1])
+            if abs(float(s) - w) > unit * 1.001:
+                bad.append(f"{start}: docs {s}, demo {w:.6g}")
+    assert not bad, bad
 
 
 def test_named_tests_and_files_exist():
