@@ -286,3 +286,35 @@ def test_documented_tool_options_exist():
             bad.append(f"{tool} --help: exit {r.returncode}: {r.stderr[-300:]}")
         bad += [f"{tool}: no {o}" for o in sorted(options) if o not in r.stdout]
     assert not bad, bad
+
+
+def _options(cmd: click.Command) -> set[str]:
+    return {o for p in cmd.params for o in (*p.opts, *p.secondary_opts)}
+
+
+def test_documented_options_exist():
+    """Every `--option` of a `softplot COMMAND ...` line in the user docs is an option of that
+    command (of its subcommand when one is named): no documented command fails on an option
+    that was renamed."""
+    cmds = _commands()
+    bad, checked = [], 0
+    for doc in USER_DOCS:
+        text = doc.read_text()
+        blocks = [b.replace("\\\n", " ") for b in re.findall(r"```[a-z]*\n(.*?)```", text, re.S)]
+        spans = re.findall(r"`([^`\n]+)`", re.sub(r"```[a-z]*\n.*?```", "", text, flags=re.S))
+        for line in "\n".join(blocks + spans).splitlines():
+            m = re.search(r"(?:^|\s)softplot ([a-z][a-z_-]*)((?: [^|;&]*)?)", line)
+            if not m or m.group(1) not in cmds:
+                continue
+            cmd, rest = cmds[m.group(1)], m.group(2).split()
+            if isinstance(cmd, click.Group) and rest and rest[0] in cmd.commands:
+                have = _options(cmd.commands[rest[0]]) | _options(cmd)
+            elif isinstance(cmd, click.Group):  # the group's default form, or a placeholder
+                have = _options(cmd).union(*(_options(c) for c in cmd.commands.values()))
+            else:
+                have = _options(cmd)
+            for opt in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", " ".join(rest)):
+                checked += 1
+                if opt not in have | {"--help"}:
+                    bad.append(f"{doc.name}: softplot {m.group(1)} ... {opt}")
+    assert checked > 50 and not bad, bad
