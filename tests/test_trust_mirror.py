@@ -6,6 +6,7 @@ the option (every mirror-symmetric layout)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from softplot.camera import builtin_names, load_camera
 from softplot.cli import main
 from softplot.io import load_scan
 from softplot.mirror import detect_oriented, mirror_symmetric
-from softplot.synthetic import ScanSpec, TruthMapping, write_scan
+from softplot.synthetic import ScanSpec, TruthMapping, render_scan, write_scan
 
 
 def run(args):
@@ -98,3 +99,84 @@ def test_symmetry_of_the_builtin_layouts(name):
         moved = cam.with_(fiducials=(f0.__class__(**{**f0.__dict__, "x": f0.x + 3.0,
                                                      "y": f0.y}), *fids[1:]))
         assert not mirror_symmetric(moved)
+
+
+# ---------------------------------------------------------------- asymmetric layouts
+#: four corner crosses and an off-axis dot: no turn or mirror maps the layout onto itself
+ASYMMETRIC = Path(__file__).parent / "data" / "asymmetric-fiducials.toml"
+
+
+@pytest.fixture(scope="module")
+def asym(tmp_path_factory):
+    """An upright scan of the asymmetric layout, the same scan mirrored, turned 90 degrees,
+    and the truth (pixel positions in the upright scan)."""
+    d = tmp_path_factory.mktemp("asym")
+    cam = load_camera(ASYMMETRIC)
+    img, truth = render_scan(cam, ScanSpec(dpi=300, rotation_deg=0.6, scene="texture"), 5)
+    out = {}
+    for key, im in (("upright", img), ("mirrored", img[:, ::-1]), ("turned", np.rot90(img))):
+        p = d / f"{key}.tif"
+        tifffile.imwrite(p, np.ascontiguousarray(im), resolution=(300.0, 300.0),
+                         resolutionunit="INCH")
+        out[key] = p
+    return d, out, truth
+
+
+def _detect_cli(scan, capsys, *extra, camera=ASYMMETRIC):
+    js = scan.with_suffix(".json")
+    js.unlink(missing_ok=True)
+    code = run(["detect", scan, "--camera", camera, "--json", js, *extra])
+    out = capsys.readouterr()
+    return code, out.out, out.err, js
+
+
+def test_asymmetric_layout_is_never_mirrored_or_turned_silently(asym, capsys):
+    assert mirror_symmetric(load_camera(ASYMMETRIC)) is False
+    d, scans, truth = asym
+    true_xy = {m["name"]: (m["x"], m["y"]) for m in truth["marks"]}
+    w = truth["width"]
+    # the right orientation: every mark, named right; the side comes from the marks
+    code, out, err, js = _detect_cli(scans["upright"], capsys)
+    assert code == 0, err
+    doc = json.loads(js.read_text())
+    assert doc["side_from"] == "marks" and "rests on --mirror" not in out
+    got = {m["name"]: (m["x"], m["y"]) for m in doc["marks"] if m["status"] == "measured"}
+    assert set(got) == set(true_xy)
+    assert max(np.hypot(*np.subtract(got[n], true_xy[n])) for n in got) < 0.3
+    # a mirrored scan without --mirror, a turned one without --rotate, and a wrong --mirror:
+    # one line naming what the marks show and the options to give; nothing written
+    for scan, extra, shows, give in (
+        (scans["mirrored"], [], "mirrored left-right", "give --mirror"),
+        (scans["turned"], [], "turned 90 degrees", "give --rotate 90"),
+        (scans["turned"], ["--rotate", "90", "--mirror"], "not mirrored", "give --rotate 90"),
+        (scans["upright"], ["--mirror"], "not mirrored", "give neither"),
+    ):
+        code, out, err, js = _detect_cli(scan, capsys, *extra)
+        assert code == 2, (scan, extra, out)
+        assert len(err.strip().splitlines()) == 1
+        assert shows in err and give in err, err
+        assert not js.exists()
+    # the options that match the scan: measured, every mark named from the right side
+    code, out, err, js = _detect_cli(scans["mirrored"], capsys, "--mirror")
+    assert code == 0, err
+    got = {m["name"]: (m["x"], m["y"]) for m in json.loads(js.read_text())["marks"]}
+    assert max(np.hypot(got[n][0] - (w - 1.0 - x), got[n][1] - y)
+               for n, (x, y) in true_xy.items()) < 0.3
+    code, out, err, js = _detect_cli(scans["turned"], capsys, "--rotate", "90")
+    assert code == 0, err
+    assert all(m["status"] == "measured" for m in json.loads(js.read_text())["marks"])
+
+
+def test_symmetric_layout_says_the_options_decide(asym, tmp_path, capsys):
+    """The same corners without the dot look the same every way: the mirrored scan is
+    measured as given, and the output says that side and names rest on the options."""
+    d, scans, _ = asym
+    sym = tmp_path / "symmetric.toml"
+    text = ASYMMETRIC.read_text()
+    sym.write_text(text[: text.index('[[fiducials]]\nname = "5"')]
+                   .replace('"test-asymmetric"', '"test-symmetric"'))
+    assert mirror_symmetric(load_camera(sym))
+    code, out, err, js = _detect_cli(scans["mirrored"], capsys, camera=sym)
+    assert code == 0, err
+    assert "rests on --mirror" in out and "rest on --rotate" in out
+    assert json.loads(js.read_text())["side_from"] == "--mirror"

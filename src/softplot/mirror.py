@@ -7,6 +7,12 @@ option. :func:`detect_oriented` measures a mirrored scan by detecting on the fli
 mapping every result back to the scan's own pixel system (x -> W - 1 - x, pixel centres at
 integers, docs/conventions.md), so the detection JSON, and every film correction made from it,
 refer to the file's pixels as stored.
+
+Where the fiducial layout is asymmetric the marks do tell: a ``--mirror`` or ``--rotate`` that
+contradicts the scan is refused in one line naming what the marks show
+(:class:`OrientationContradiction`). The check costs nothing when every fiducial is found as
+given; otherwise the orientations the layout can tell apart from the given one are tried, and
+one that finds more fiducials is the contradiction.
 """
 
 from __future__ import annotations
@@ -15,7 +21,10 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["detect_oriented", "mirror_symmetric", "side_json", "MIRROR_NOTE"]
+from softplot.errors import SoftplotError
+
+__all__ = ["detect_oriented", "mirror_symmetric", "side_json", "distinguishable",
+           "OrientationContradiction", "MIRROR_NOTE"]
 
 MIRROR_NOTE = ("the marks look the same mirrored: the side of the film (emulsion up or down) "
                "rests on --mirror")
@@ -37,10 +46,122 @@ def mirror_symmetric(cam, tol_mm: float = 1e-3) -> bool:
     return bool(np.all(d.min(axis=1) <= tol_mm))
 
 
+class OrientationContradiction(SoftplotError):
+    """The marks show the photo turned or mirrored otherwise than ``--rotate`` / ``--mirror``
+    say (an asymmetric fiducial layout)."""
+
+
+#: film mm: marks this close after a turn or mirror of the layout are in each other's place
+SYMMETRY_TOL_MM = 0.2
+
+
+def _orientation(mirror: bool, rotate: float) -> np.ndarray:
+    """Film-plane matrix of an orientation: mirrored left-right (x -> -x) first, then turned
+    ``rotate`` degrees counter-clockwise (the order of ``--mirror`` and ``--rotate``)."""
+    a = np.radians(rotate)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return R @ np.diag([-1.0 if mirror else 1.0, 1.0])
+
+
+def _invariant(fids, g: np.ndarray) -> bool:
+    """Whether the film-plane map ``g`` (2x2) takes the fiducial layout onto itself
+    (positions within :data:`SYMMETRY_TOL_MM`, and shapes)."""
+    film = np.array([[f.x, f.y] for f in fids], float)
+    shapes = [(f.shape, round(f.size_mm, 3)) for f in fids]
+    moved = film @ g.T
+    d = np.hypot(*(moved[:, None, :] - film[None, :, :]).transpose(2, 0, 1))
+    j = d.argmin(1)
+    return bool((d[np.arange(len(film)), j] <= SYMMETRY_TOL_MM).all() and len(set(j)) == len(j)
+                and all(shapes[a] == shapes[b] for a, b in enumerate(j)))
+
+
+def distinguishable(cam, mirror: bool = False, rotate: float = 0.0) -> list[tuple[bool, int]]:
+    """The orientations ``(mirror, rotate)`` whose fiducials the scan can tell from the given
+    one: those the layout does not map onto it (empty without fiducials or with a reseau,
+    whose grid looks the same every way)."""
+    if cam.reseau is not None or not cam.fiducials:
+        return []
+    g0 = _orientation(mirror, rotate)
+    out = []
+    for m in (False, True):
+        for r in (0, 90, 180, 270):
+            if m == bool(mirror) and r % 360 == round(rotate) % 360:
+                continue
+            g = np.linalg.solve(g0, _orientation(m, r))
+            if not _invariant(cam.fiducials, np.round(g, 12)):
+                out.append((m, r))
+    return out
+
+
+def _flags(mirror: bool, rotate: float) -> str:
+    turned = round(rotate) % 360
+    parts = ([f"--rotate {turned}"] if turned else []) + (["--mirror"] if mirror else [])
+    return " ".join(parts) or "neither --rotate nor --mirror"
+
+
+def _shows(mirror: bool, rotate: float) -> str:
+    turned = round(rotate) % 360
+    parts = ([f"turned {turned} degrees counter-clockwise"] if turned else [])
+    parts.append("mirrored left-right" if mirror else "not mirrored")
+    return ", ".join(parts)
+
+
+def _n_measured(det) -> int:
+    return sum(1 for k, st in zip(det.kind, det.status, strict=True)
+               if k == "fiducial" and st == "measured")
+
+
 def detect_oriented(sc, cam, *, mirror: bool = False, **kwargs):
     """:func:`softplot.marks.detect` of a scan that may be mirrored (``mirror``: scanned
     through the film base). Results are in the scan's own pixel system; the detection carries
-    ``mirror`` (:func:`side_json` gives its JSON keys)."""
+    ``mirror`` (:func:`side_json` gives its JSON keys).
+
+    Raises
+    ------
+    OrientationContradiction
+        The fiducial layout is asymmetric and the marks show another orientation than
+        ``mirror`` and ``rotate`` (one line: what the marks show and the options to give).
+    """
+    from softplot.camera import load_camera
+    from softplot.marks.detect import DetectionError
+
+    cam = load_camera(cam)
+    rotate = float(kwargs.get("rotate", 0.0))
+    det = error = None
+    try:
+        det = _detect_once(sc, cam, mirror, kwargs)
+    except DetectionError as exc:
+        error = exc
+    n = len(cam.fiducials)
+    if det is not None and (cam.reseau is not None or _n_measured(det) == n):
+        return det
+    alternatives = distinguishable(cam, mirror, rotate)
+    n_given = 0 if det is None else _n_measured(det)
+    best = None
+    for m, r in alternatives:
+        try:
+            d2 = _detect_once(sc, cam, m, {**kwargs, "rotate": float(r)})
+        except DetectionError:
+            continue
+        k = _n_measured(d2)
+        if k > n_given and (best is None or k > best[0]):
+            best = (k, m, r)
+    if best is not None:
+        k, m, r = best
+        name = getattr(getattr(sc, "path", None), "name", None) or "scan"
+        given = _flags(mirror, rotate).replace("neither --rotate nor --mirror",
+                                               "no --rotate, no --mirror")
+        raise OrientationContradiction(
+            f"{name}: the {cam.name} fiducials show the photo {_shows(m, r)} ({k} of {n} "
+            f"marks found that way, {n_given} with {given}): give {_flags(m, r)}"
+        )
+    if det is None:
+        raise error
+    return det
+
+
+def _detect_once(sc, cam, mirror: bool, kwargs):
+    """One detection with the given orientation (see :func:`detect_oriented`)."""
     from softplot.marks import detect
 
     if not mirror:
