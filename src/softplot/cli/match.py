@@ -43,39 +43,80 @@ def match_options(f):
 
 
 @click.command("match")
-@click.argument("left", type=click.Path(path_type=Path))
-@click.argument("right", type=click.Path(path_type=Path))
+@click.argument("scans", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--camera", required=True, help="Camera: built-in name or certificate (TOML).")
 @click.option("--detection-left", type=click.Path(path_type=Path),
               help="Marks of the left scan (softplot detect JSON); detected when omitted.")
 @click.option("--detection-right", type=click.Path(path_type=Path),
               help="Marks of the right scan (softplot detect JSON); detected when omitted.")
+@click.option("--detection", "detections", multiple=True, type=click.Path(path_type=Path),
+              help="A block: the marks of each scan (softplot detect JSON), one per scan in "
+              "the order of the scans; detected once per scan when omitted.")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path),
-              help="Output folder: left.csv, right.csv, ties.csv, match.json.")
+              help="Output folder: left.csv, right.csv, ties.csv, match.json (a pair); a "
+              "bundle project (a block).")
 @match_options
+@click.option("--block", "as_block", is_flag=True,
+              help="Two scans as a block too (a bundle project); three or more always are.")
+@click.option("--workers", type=click.IntRange(0), default=2, show_default=True,
+              help="A block: worker processes matching the pairs (dask.distributed; 0: in "
+              "this process).")
+@click.option("--scheduler", help="A block: address of an existing dask scheduler "
+              "(tcp://host:8786) instead of local workers.")
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run.")
-def command(left, right, camera, detection_left, detection_right, out, max_ties, min_corr,
-            overwrite) -> None:
-    """Tie points between two scans of a stereo pair, each with its precision.
+def command(scans, camera, detection_left, detection_right, detections, out, max_ties,
+            min_corr, as_block, workers, scheduler, overwrite) -> None:
+    """Tie points between scans: LEFT RIGHT (a stereo pair) or SCAN SCAN SCAN ... (a block).
 
-    SIFT in the film-corrected images (ratio test, mutual check), five-point RANSAC on photo
-    coordinates, least-squares matching in the scans (to a fraction of a pixel, with the
-    standard deviation of every match), then the least-squares relative orientation with
+    A pair: SIFT in the film-corrected images (ratio test, mutual check), five-point RANSAC
+    on photo coordinates, least-squares matching in the scans (to a fraction of a pixel, with
+    the standard deviation of every match), then the least-squares relative orientation with
     data snooping. Writes OUT/left.csv and OUT/right.csv (name,x,y scan pixels, the same
     names in the same order: what softplot correct --points takes), OUT/ties.csv (both
     positions, precision sx_px, sy_px, correlation, residual y-parallax py_px) and
     OUT/match.json (n, sigma0, rms_px - the residual y-parallax in pixels -, the ties in the
-    six Gruber areas, the relative orientation). See docs/matching.md.
+    six Gruber areas, the relative orientation).
+
+    A block (three or more scans, or --block): every pair matched as above on dask
+    workers (pairs that do not overlap are skipped), the ties linked into multi-ray points
+    and measured from one template each; OUT becomes a bundle project (cameras.toml,
+    photos.csv, observations.csv in film mm with their precision) for softplot bundle OUT,
+    with OUT/block.json and each pair's ties in OUT/pairs/. See docs/matching.md.
     """
     from softplot.matching.ties import MatchOptions, check_outputs, match_pair
 
+    if len(scans) < 2:
+        raise SoftplotError(f"give two scans (a pair) or more (a block), got {len(scans)}")
+    opts = MatchOptions(max_ties=max_ties, min_corr=min_corr)
+    if len(scans) > 2 or as_block:
+        from softplot.matching.block import match_block
+
+        if detection_left or detection_right:
+            raise SoftplotError("a block takes --detection once per scan, not "
+                                "--detection-left/--detection-right")
+        bar = _bar(len(scans) * (len(scans) - 1) // 2)
+        try:
+            summary = match_block(scans, camera, out, list(detections) or None, options=opts,
+                                  workers=workers, scheduler=scheduler, overwrite=overwrite,
+                                  progress=bar)
+        finally:
+            bar.close()
+        done = [p for p in summary["pairs"] if p["status"] == "done"]
+        rays = ", ".join(f"{v} with {k} rays" for k, v in summary["points_by_rays"].items())
+        click.echo(f"{len(done)} of {len(summary['pairs'])} pairs overlap; "
+                   f"{summary['points']} points ({rays}), {summary['observations']} "
+                   "observations")
+        click.echo(f"wrote the bundle project {out} (next: softplot bundle {out})")
+        return
+    if detections:
+        raise SoftplotError("a pair takes --detection-left and --detection-right")
+    left, right = scans
     names = ("left.csv", "right.csv", "ties.csv", "match.json")
     if out.exists() and not out.is_dir():
         raise SoftplotError(f"{out}: exists and is not a folder")
     check_outputs([out / n for n in names], overwrite)
     cam, scans, maps = load_pair(left, right, camera, detection_left, detection_right)
-    res = match_pair(scans[0], scans[1], maps[0], maps[1],
-                     MatchOptions(max_ties=max_ties, min_corr=min_corr))
+    res = match_pair(scans[0], scans[1], maps[0], maps[1], opts)
     res.write(out, overwrite=overwrite)
     g = res.gruber
     click.echo(
@@ -84,6 +125,20 @@ def command(left, right, camera, detection_left, detection_right, out, max_ties,
         + ("" if min(g) > 0 else " (some Gruber areas empty)")
     )
     click.echo(f"wrote {out}")
+
+
+def _bar(total: int):
+    """A progress callback (done, total) drawing a tqdm bar on stderr; ``.close()``."""
+    from tqdm import tqdm
+
+    t = tqdm(total=total, unit="pair", desc="match", file=None, leave=False)
+
+    def cb(done, _total):
+        t.n = done
+        t.refresh()
+
+    cb.close = t.close
+    return cb
 
 
 def auto_photo_ties(scans, camera, ties_dir=None):

@@ -114,6 +114,9 @@ class TieResult:
     gruber: list
     counts: dict = field(default_factory=dict)
     sigma_prior_mm: float = float("nan")
+    #: (n, 2) index of each tie's SIFT keypoint in the left and right overview (the same
+    #: keypoints in every pair a scan is part of: they link pairs into multi-ray points)
+    keypoints: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -466,20 +469,21 @@ def match_pair(left, right, left_map, right_map, options: MatchOptions | None = 
             f"with one relative orientation, at least {MIN_TIES} needed")
     sl, sr = sl[inl], sr[inl]
     score = kps[0][2][i1][inl]
+    kid = np.c_[i1, i2][inl]
     good = _parallax_consistent(sl, sr, 4.0 * max(ovs[0][2], ovs[1][2]) / min(pixel_mm))
-    sl, sr, score = sl[good], sr[good], score[good]
+    sl, sr, score, kid = sl[good], sr[good], score[good], kid[good]
     counts["smooth"] = int(len(sl))
     # avoid the marks: template and right patch must keep clear of every cross / fiducial
     say("lsm")
     keep = _clear_of_marks(sl, maps[0].correction, pixel_mm[0], opt.half)
     keep &= _clear_of_marks(sr, maps[1].correction, pixel_mm[1], opt.half)
-    sl, sr, score = sl[keep], sr[keep], score[keep]
+    sl, sr, score, kid = sl[keep], sr[keep], score[keep], kid[keep]
     # independent ties: no two templates overlap (overlapping patches share their noise and
     # texture, so their errors are correlated and the orientation's precision optimistic)
     sep = _separated(sl, score, 2 * opt.half + 2)
-    sl, sr, score = sl[sep], sr[sep], score[sep]
+    sl, sr, score, kid = sl[sep], sr[sep], score[sep], kid[sep]
     sel = _spread(sl, score, greys[0].shape, opt.grid, opt.max_ties)
-    sl, sr = sl[sel], sr[sel]
+    sl, sr, kid = sl[sel], sr[sel], kid[sel]
     counts["selected"] = int(len(sl))
     if len(sl) < MIN_TIES:
         raise SoftplotError(f"too few ties: {len(sl)} consistent candidates clear of the marks, "
@@ -500,6 +504,7 @@ def match_pair(left, right, left_map, right_map, options: MatchOptions | None = 
     R = pm.xy[ok]
     S = pm.std[ok]
     corr = pm.corr[ok]
+    kid = kid[ok]
     if len(L) < MIN_TIES:
         raise SoftplotError(f"too few ties: {len(L)} after least-squares matching, at least "
                             f"{MIN_TIES} needed")
@@ -536,5 +541,5 @@ def match_pair(left, right, left_map, right_map, options: MatchOptions | None = 
     px_mm = p1[idx, 0] - p2[idx, 0]
     gr = gruber_counts(p1[idx], px_mm, cam.format_mm)
     return TieResult(names, L[idx], R[idx], S[idx], corr[idx], p1[idx], p2[idx], py_px, ro,
-                     pmm, gr, counts, float(np.median(sig[idx])))
+                     pmm, gr, counts, float(np.median(sig[idx])), kid[idx])
 
