@@ -28,7 +28,7 @@ _ORDINAL = (r"(?:first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tent
 _DATE = r"\d{4}-\d{2}-\d{2}"
 #: words of a development log, not of a user's document
 DEV_WORDS = re.compile(
-    r"\bissues? \d|\bthe lead\b|DESIGN\.md|/work/|\bhelper's\b|\bthe helper\b"
+    r"\bissues?[- ]\d|\bthe issue's\b|\bthe lead\b|DESIGN\.md|/work/|\bhelper's\b|\bthe helper\b"
     rf"|\b{_ORDINAL}(?: {_DATE})? session\b"  # "the fifth 2026-12-02 session"
     rf"|\b{_DATE} session\b"  # "in the 2026-12-02 session"
     # a development session, not a plotting session ("a file read for this session" is fine)
@@ -81,6 +81,7 @@ def test_no_development_log_in_user_docs(doc):
     ("Figures of the first 40 renders of the full sweep (seeds 0-39)", False),
     ("the session's scans; this session's journal", False),
     ("a file read for this session, and every file this session was made from", False),
+    ("The issue-3 JSON document; the issue's formula", True),
     ("Tried and dropped in earlier sessions, because they were worse", True),
     ("after this session's fine-stage changes (the affine of each cross)", True),
     ("0.0044 px (1.5e-3 px), seed 1234567, RMS 0.0125", False),

@@ -62,7 +62,7 @@ __all__ = [
 
 
 def load_detection(path: str | Path) -> dict:
-    """Read a detection JSON (issue-3 format); errors name the file and the problem."""
+    """Read a detection JSON (docs/detection.md); errors name the file and the problem."""
     p = Path(path)
     if not p.is_file():
         raise SoftplotError(f"{p}: detection file not found")

@@ -9,7 +9,7 @@ level and tilt, contrast), so the bound is the one for *this* estimation problem
 idealised one. It returns the scalar ``sqrt((var_x + var_y) / 2)`` in pixels, averaged over
 sub-pixel phases of the mark.
 
-Closed form for a cross (the issue's formula). A bar edge blurred by ``sigma_b`` has the
+Closed form for a cross (docs/accuracy.md). A bar edge blurred by ``sigma_b`` has the
 profile ``C * Phi(t / sigma_b)``; its derivative ``C * phi(t / sigma_b) / sigma_b`` carries
 ``integral (C phi / sigma_b)^2 dt = C^2 / (2 sqrt(pi) sigma_b)`` of information per unit length
 about a shift across it. The vertical bar of a cross (tip-to-tip length ``2L``) has two edges,
@@ -37,7 +37,7 @@ __all__ = ["centre_crb", "cross_crb_simple", "effective_noise", "render_crb"]
 
 
 def cross_crb_simple(contrast: float, noise: float, blur: float, arm_half_px: float) -> float:
-    """The issue's closed-form bound ``(sigma_n/C) sqrt(sqrt(pi) sigma_b / (2 L))`` (px)."""
+    """The closed-form bound ``(sigma_n/C) sqrt(sqrt(pi) sigma_b / (2 L))`` (px)."""
     return float(noise / contrast * np.sqrt(np.sqrt(np.pi) * blur / (2.0 * arm_half_px)))
 
 

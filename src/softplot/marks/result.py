@@ -131,7 +131,7 @@ class Detection:
                                                     for w in self.warnings) else ""))
 
     def to_json(self) -> dict:
-        """The issue-3 JSON document (a dict ready for ``json.dump``)."""
+        """The detection JSON document (docs/detection.md; a dict ready for ``json.dump``)."""
         marks = []
         for i in range(len(self)):
             ok = np.all(np.isfinite(self.xy[i]))

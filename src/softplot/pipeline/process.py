@@ -20,7 +20,7 @@ mark, px), ``method`` (the correction applied), ``recommended``, ``loo_rms_um`` 
 ``loo_max_um`` of that method, ``crossval`` (every method's scores, see
 :meth:`softplot.geometry.crossval.CrossValidation.to_dict`), ``qc`` (``ok`` and a list of
 ``warnings``), ``worst`` (the marks with the largest residuals: name, x, y px, residual
-px), ``detection`` (the issue-3 detection JSON), ``flattened`` (paths or null),
+px), ``detection`` (the detection JSON, docs/detection.md), ``flattened`` (paths or null),
 ``seconds``, ``complete``.
 
 :func:`write_report` builds the one self-contained HTML report over the results of a run:

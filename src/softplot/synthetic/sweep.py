@@ -563,7 +563,7 @@ def aggregate(results: list[tuple[Case, Score]]) -> dict[str, dict]:
     return out
 
 
-#: the issue's targets over the sweep
+#: the targets over the sweep (docs/accuracy.md, "Robustness sweep")
 TARGETS = {"results": 1.0, "measured_rate": 0.995, "wrong": 0, "claimed": 0,
            "rms_over_crb": 1.25, "z_rms": (0.67, 1.5)}
 
