@@ -23,7 +23,7 @@ def _motors(port: str | None, timeout: float):
     if port:
         from softplot.motors.grbl import GrblMotors
 
-        return GrblMotors(port, timeout=timeout)
+        return GrblMotors(port, timeout=max(timeout, 2.0))
     fine = AxisConfig(resolution_mm=1e-6, min_mm=-500, max_mm=500, max_speed_mm_s=1e9)
     return VirtualMotors(fine, fine)
 
@@ -146,17 +146,33 @@ def new(folder, photos_path, mode, height, left_offset, left_scan, right_scan, c
     help="Drive a GRBL instrument on this serial port instead of the virtual motors.",
 )
 @click.option("--timeout", type=float, default=5.0, show_default=True,
-              help="Seconds to wait for the carriage to reach each point.")
-def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout):
+              help="Seconds to wait for the carriage to reach each point (on an instrument "
+              "a carriage that takes longer is a fault: the point is not recorded).")
+@click.option("--home", "home_first", is_flag=True,
+              help="With --port: home the instrument ($H) first; re-establishes a position "
+              "lost to a reset or a power cycle.")
+@click.option("--confirm-position", is_flag=True,
+              help="With --port: the operator vouches for the controller's present position "
+              "(checked against a reference); unlocks it and resumes in that frame.")
+def trace(folder, input_path, code, kind, mode, height, close_line, port, timeout, home_first,
+          confirm_position):
     """Run the plotter over scripted operator input and record features in FOLDER.
 
     A row whose point the carriage cannot reach (outside its travel or the model) is not
-    recorded; one line names it.
+    recorded; one line names it. With --port each point is recorded only once the instrument
+    confirms that the carriage stands on it; a timeout or any motor fault stops the run
+    (exit 2) and is journaled.
     """
     from softplot.pipeline.session import Session
     from softplot.stereo.plotter import NotReached
 
+    if (home_first or confirm_position) and not port:
+        raise SoftplotError("--home and --confirm-position need --port")
     with _motors(port, timeout) as mot:
+        if home_first:
+            mot.home(timeout=max(timeout, 60.0))
+        if confirm_position:
+            mot.confirm_position()
         s = Session.resume(folder, motors=mot)
         try:
             tmode = mode or s.mode
@@ -184,7 +200,9 @@ def trace(folder, input_path, code, kind, mode, height, close_line, port, timeou
             if kind != "point":
                 pl.begin(code, kind)
             for name, row in zip(names, v, strict=True):
-                pl.cycle(row[0], row[1], row[2] if tmode == "single" else None)
+                cyc = pl.cycle(row[0], row[1], row[2] if tmode == "single" else None)
+                if port and cyc.in_travel:
+                    _confirm(pl, mot, timeout, name)  # a timeout on the instrument is a fault
                 try:
                     if kind == "point":
                         pl.record_point(code, name=name)
@@ -196,7 +214,7 @@ def trace(folder, input_path, code, kind, mode, height, close_line, port, timeou
             if kind != "point":
                 pl.end(close=close_line)
             if port:
-                mot.wait(timeout)
+                _confirm(pl, mot, timeout, "the last point")
             click.echo(
                 f"{len(names)} input row(s) -> {len(s.features) - n0} new feature(s) in "
                 f"{folder}" + (f"; {len(missed)} row(s) not recorded" if missed else "")
@@ -228,6 +246,28 @@ def set_mode(folder, mode, height):
         click.echo(f"session mode {mode}" + (f", height {height:g}" if mode == "contour" else ""))
     finally:
         s.close()
+
+
+def _confirm(pl, mot, timeout: float, name: str) -> None:
+    """The carriage stands on the commanded target within ``timeout`` s, or the motor fault
+    (a timeout included) stops the plotter and is journaled (:class:`PlotterHalted`)."""
+    from softplot.motors import MotorFault, MotorTimeout
+
+    try:
+        if not mot.wait(timeout):
+            raise MotorTimeout(
+                f"carriage did not reach {name} within {timeout} s (DX, DY target "
+                f"{mot.target()[0]:.3f}, {mot.target()[1]:.3f} mm)"
+            )
+        at, want = mot.position(), mot.target()
+        steps = [round((a - w) / r) for a, w, r in zip(at, want, mot.resolution, strict=True)]
+        if any(steps):
+            raise MotorFault(
+                f"carriage stopped at DX={at[0]:.3f}, DY={at[1]:.3f} mm, not on {name} "
+                f"({want[0]:.3f}, {want[1]:.3f} mm)"
+            )
+    except MotorFault as exc:
+        pl._fault(exc)  # stops the motors, journals the fault, raises PlotterHalted
 
 
 @command.command("resume")

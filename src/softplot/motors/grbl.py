@@ -294,6 +294,7 @@ class GrblMotors(Motors):
         self.fault: MotorFault | None = None
         self.position_valid = True
         self.homed = False
+        self.confirmed = False  # the operator vouched for the present position
         self._last_mpos: tuple[float, float] | None = None  # at the last standstill
         self._lost: Exception | None = None
         self._ready = False  # $I, $$ and the configuration done
@@ -309,7 +310,7 @@ class GrblMotors(Motors):
 
     def _lose_position(self, why: str) -> None:
         self.position_valid = False
-        self.homed = False
+        self.homed = self.confirmed = False
         self._set_fault(MotorPositionLost(why))
 
     def _check_fault(self):
@@ -479,6 +480,7 @@ class GrblMotors(Motors):
             self.command("$X")
             st = self.status()
         self.position_valid = True
+        self.confirmed = True
         self.alarm = None
         self._sync_target(st)
 
@@ -569,7 +571,7 @@ class GrblMotors(Motors):
         err = self._set_fault(MotorAlarm(text, code))
         if code not in _POSITION_KEPT_ALARMS:
             self.position_valid = False
-            self.homed = False
+            self.homed = self.confirmed = False
         if code in (1, 2):  # critical: nothing is answered until a reset
             for p in self._inflight:  # kept in line: a late answer must not shift the rest
                 p.fail(err)
@@ -596,7 +598,7 @@ class GrblMotors(Motors):
             )
         )
         self.position_valid = False
-        self.homed = False
+        self.homed = self.confirmed = False
         while self._inflight:
             self._inflight.popleft().fail(err)
         # lines that reached the rebooted controller must not run: reset it
@@ -904,6 +906,7 @@ class GrblMotors(Motors):
             if st.state == "Alarm":
                 raise self._set_fault(MotorAlarm(f"GRBL in alarm state on {self.port}", self.alarm))
             if st.state not in _BUSY_STATES and not self._inflight:
+                self._check_fault()  # a banner or an alarm that came before this report
                 break
             if t_end is not None and time.monotonic() >= t_end:
                 return False
@@ -1083,8 +1086,8 @@ class GrblMotors(Motors):
                     "since the session was saved); home the axes or confirm the position"
                 )
             )
-        if ref is None or self.homed:
-            return
+        if ref is None or self.homed or self.confirmed:
+            return  # re-referenced since: the saved target is driven to in this frame
         st = self.status()
         here = st.mpos[:2]
         want = ref.get("machine_target")

@@ -1148,6 +1148,7 @@ class GrblSimulator:
         the machine position is lost (MPos 0), EEPROM kept; an unrequested banner."""
         with self._lock:
             self._freeze()
+            self.rebooted_at = list(self.phys)  # for tests: where the carriage was
             self._out.clear()
             self._in.clear()
             if power_loss:

@@ -284,7 +284,10 @@ class Plotter:
             self.motors.stop()
             msg += "; motors stopped"
         except Exception as stop_exc:  # noqa: BLE001 - report, never mask the first fault
-            msg += f"; stopping failed too ({stop_exc})"
+            same = str(stop_exc) == str(exc)  # each cause named once
+            msg += "; the motors could not be stopped" if same else (
+                f"; stopping failed too ({stop_exc})"
+            )
         msg += f"; session kept ({len(self.features)} features recorded)"
         self.halted = msg
         if self.on_fault is not None:
