@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from softplot.motors import MotorAlarm, MotorFault, MotorPositionLost
+from softplot.motors import AxisConfig, MotorAlarm, MotorFault, MotorPositionLost
 from softplot.motors.grbl import GrblMotors
 from softplot.motors.simulator import GrblSimulator
 from softplot.pipeline.session import Session
@@ -158,22 +158,23 @@ def test_stream_pauses_during_a_feed_hold():
 
 
 def test_busy_while_held_with_motion_pending():
-    with GrblSimulator(time_scale=20) as sim, GrblMotors(sim.path, timeout=0.5) as m:
-        m.move_to(-10.0, 0.0, wait=False)
+    ax = AxisConfig(min_mm=-100, max_mm=100)
+    with GrblSimulator(time_scale=20) as sim, GrblMotors(sim.path, ax, ax, timeout=0.5) as m:
+        m.move_to(-50.0, 0.0, wait=False)
         m.wait(0.05)
         m.realtime(b"!")
         time.sleep(0.2)
         assert m.status().state == "Hold" and m.status().substate == 0
         assert m.busy and not m.wait(0.3)
         m.realtime(b"~")
-        assert m.wait(5) and m.position() == pytest.approx((-10.0, 0.0))
-        assert sim.pos[0] == -10.0
+        assert m.wait(5) and m.position() == pytest.approx((-50.0, 0.0))
+        assert sim.pos[0] == -50.0
 
 
 # ------------------------------------------------------------------ 6. alarms and resets
 def test_reset_while_moving_reports_alarm3_and_replies_stay_in_step():
     with GrblSimulator(time_scale=20) as sim, GrblMotors(sim.path, timeout=0.3) as m:
-        m.move_to(-5.0, 0.0, wait=False)
+        m.move_to(-15.0, 0.0, wait=False)
         m.wait(0.05)
         m.realtime(b"\x18")  # a reset from outside while moving
         with pytest.raises(MotorAlarm, match=r"ALARM:3 \(reset while in motion"):
@@ -190,14 +191,14 @@ def test_reset_while_moving_reports_alarm3_and_replies_stay_in_step():
 # ------------------------------------------------------------------ 7. limits, jog stop, homing
 def test_stop_during_a_jog_waits_for_the_deceleration():
     with GrblSimulator(time_scale=20) as sim, GrblMotors(sim.path, timeout=1) as m:
-        m.command("$J=G91X-20F500")
+        m.command("$J=G91X-100F500")
         time.sleep(0.1)  # 2 s controller time: cruising at 8.3 mm/s
         m.stop()
         pos = m.position()
         assert m.target() == pytest.approx(pos) and m.status().state == "Idle"
         time.sleep(0.1)
         assert sim.pos[:2] == pytest.approx(list(pos))  # it stopped where the driver says
-        assert -20.0 < pos[0] < -5.0
+        assert -100.0 < pos[0] < -5.0
 
 
 def test_failed_homing_is_one_fault():
