@@ -19,7 +19,9 @@ each).
 Robustness: the first iterations use a wide blur (``s`` fixed large) to widen the capture range;
 then all parameters are free and pixel weights follow Tukey's biweight on the residuals scaled by
 their MAD, so that dust or a scratch over one arm gets weight 0 and does not pull the centre.
-The covariance of the centre is ``sigma0**2 * N^-1`` of the final weighted normal equations.
+The covariance of the centre is the sandwich of the final weighted normal equations with the
+residuals' correlation between neighbouring pixels (:func:`_correlated_cov`; ``sigma0**2 * N^-1``
+for independent pixels).
 
 For crosses the model and Jacobian of each step come from the compiled kernel of
 :mod:`softplot.marks.kernels` when numba is there (the same values to float32 rounding), else
@@ -361,7 +363,11 @@ def _step(p, data, shape, active, robust, init=False):
     s0sq = (w * r * r).sum(1, dtype=float) / red
     cov = Ninv[:, 0:2, 0:2] * s0sq[:, None, None]
     sig = np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0.0))
-    state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq, Tu=Tu, Tv=Tv)
+    # the centre's influence on each weighted pixel, (N, 2, P): cov = Sum h h^T s0^2 for
+    # white residuals; with correlated ones see _correlated_cov (J is sqrt(w) J here)
+    h = np.matmul(Ninv[:, 0:2, :].astype(np.float32), J.transpose(0, 2, 1))
+    state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq, Tu=Tu, Tv=Tv,
+                 h=h)
     # step limits: centre 1.5 px, shape 5 %, blur within a sane range
     dc = np.hypot(dp[:, 0], dp[:, 1])
     k = np.minimum(1.0, 1.5 / np.maximum(dc, 1e-12))
@@ -397,6 +403,27 @@ def _arm_outliers(p, data, shape, last, z_max=4.0):
     (N,) int
         Part index (0..3) to drop, or -1.
     """
+    d, var, ms = _half_arm_shifts(p, data, shape, last)
+    n = len(p)
+    out = np.full(n, -1)
+    worst = np.zeros(n)
+    for a, c in ((0, 2), (1, 3)):
+        z = np.abs(d[:, a] - d[:, c]) / np.sqrt(var[:, a] + var[:, c])
+        z = np.nan_to_num(z, nan=0.0, posinf=0.0)
+        flag = (z > z_max) & (z > worst)
+        out[flag] = np.where(ms[flag, a] >= ms[flag, c], a, c)
+        worst = np.where(flag, z, worst)
+    return out
+
+
+def _half_arm_shifts(p, data, shape, last):
+    """Each half-arm's own estimate of the shift across its arm at the fitted geometry.
+
+    Returns ``(d, var, ms)`` (N, 4) over the parts 0..3 of :func:`_parts`: the one-parameter
+    shift ``d_k = sum(w J r) / sum(w J^2)`` (``J = b dT/dn``, ``n`` across the arm), its
+    variance ``s0^2 / sum(w J^2)`` for independent pixels (inf for a half without weight)
+    and the weighted mean square residual of the half.
+    """
     X, Y, S = data[0], data[1], data[4]
     valid = data[3]
     # the geometry of each mark's last step (its update was below CONVERGED sigma)
@@ -418,15 +445,85 @@ def _arm_outliers(p, data, shape, last, z_max=4.0):
         d[ok, k] = (wk * Jn * r).sum(1, dtype=float)[ok] / den[ok]
         var[ok, k] = s0sq[ok] / den[ok]
         ms[:, k] = (wk * r * r).sum(1, dtype=float) / np.maximum(wk.sum(1, dtype=float), 1e-9)
-    out = np.full(n, -1)
-    worst = np.zeros(n)
-    for a, c in ((0, 2), (1, 3)):
-        z = np.abs(d[:, a] - d[:, c]) / np.sqrt(var[:, a] + var[:, c])
-        z = np.nan_to_num(z, nan=0.0, posinf=0.0)
-        flag = (z > z_max) & (z > worst)
-        out[flag] = np.where(ms[flag, a] >= ms[flag, c], a, c)
-        worst = np.where(flag, z, worst)
-    return out
+    return d, var, ms
+
+
+#: lags (px) of the residual correlation in :func:`_correlated_cov`: ``CORR_REACH`` x the
+#: fitted blur plus 1, at most ``CORR_MAX_LAG`` (blurred grain decorrelates within about
+#: 2.5 blur sigmas; the pixel footprint and interpolation within a pixel)
+CORR_REACH = 2.5
+CORR_MAX_LAG = 8
+CORR_MIN_LAG = 3
+
+
+def _correlated_cov(h, r, w, valid, X, Y, s0sq, blur):
+    """The centre's covariance (N, 2, 2) with the residuals' correlation between neighbouring
+    pixels: ``s0^2 Sum_lag rho(lag) Sum_i h_i h_{i+lag}^T``.
+
+    Gauss-Newton's ``s0^2 N^-1`` assumes independent pixels; residuals of a scan are not
+    (film grain blurred by the scanner optics, JPEG blocks, interpolation, model error over a
+    few pixels): the effective number of independent pixels is smaller and the true variance
+    larger. With ``h = N^-1 (sqrt(w) J)^T`` (rows: the centre's influence on each weighted
+    pixel) the centre is ``Sum_i h_i sqrt(w_i) e_i``, so its covariance is the sandwich above,
+    ``rho`` being the autocorrelation of the weighted residuals ``sqrt(w) r``, estimated per
+    mark over its own pixels (pairs of valid pixels at each lag) within
+    ``CORR_REACH * blur + 1`` px (at most :data:`CORR_MAX_LAG`). At lag 0 the sum is
+    ``N^-1`` (white residuals: the usual covariance). ``X``, ``Y`` are the pixels' integer
+    positions (any common origin per mark); all arrays (N, P) except ``h`` (N, 2, P).
+    Where the result is not positive definite the usual covariance is kept.
+    """
+    from scipy import fft
+
+    n, P = r.shape
+    if n == 0:
+        return np.zeros((0, 2, 2))
+    big = 1e9
+    ix = np.rint(X - np.where(valid, X, big).min(1, keepdims=True)).astype(np.int64)
+    iy = np.rint(Y - np.where(valid, Y, big).min(1, keepdims=True)).astype(np.int64)
+    ix[~valid] = 0
+    iy[~valid] = 0
+    gw = int(ix.max()) + 1
+    gh = int(iy.max()) + 1
+    K = int(min(CORR_MAX_LAG, np.ceil(CORR_REACH * max(float(np.nanmax(blur)) if np.size(blur)
+                                                         else 1.0, 0.5)) + 1))
+    K = max(CORR_MIN_LAG, K)
+    K = max(1, min(K, gh - 1, gw - 1)) if min(gh, gw) > 1 else 0
+    shp = (fft.next_fast_len(gh + K), fft.next_fast_len(gw + K))
+    flat = iy * shp[1] + ix
+    vf = valid.astype(np.float32)
+    R = (np.sqrt(np.maximum(w, 0.0)) * r * vf).astype(np.float32)
+    rows = np.arange(n)[:, None]
+
+    def grid(vals):
+        g = np.zeros((n, shp[0] * shp[1]), np.float32)
+        g[rows, flat] = np.where(valid, vals, 0.0)
+        return g.reshape(n, *shp)
+
+    grids = np.stack([grid(R), grid(vf), grid(h[:, 0]), grid(h[:, 1])], 1)  # (N, 4, h, w)
+    F = fft.rfft2(grids, workers=-1)
+    conj = np.conj(F)
+
+    def corr(a, b):
+        """Sum_i a_i b_{i+lag} at lags -K..K (rows, cols), (N, 2K+1, 2K+1)."""
+        c = fft.irfft2(conj[:, a] * F[:, b], s=shp, workers=-1)
+        c = np.roll(c, (K, K), axis=(1, 2))[:, : 2 * K + 1, : 2 * K + 1]
+        return c
+
+    rr = corr(0, 0)
+    vv = corr(1, 1)
+    var0 = rr[:, K, K] / np.maximum(vv[:, K, K], 1.0)
+    rho = (rr / np.maximum(vv, 1.0)) / np.maximum(var0, 1e-30)[:, None, None]
+    rho = np.where(vv >= 8, rho, 0.0)  # lags with too few pairs carry nothing
+    rho[:, K, K] = 1.0
+    kxx, kxy, kyy = corr(2, 2), corr(2, 3), corr(3, 3)
+    cxx = (rho * kxx).sum((1, 2))
+    cyy = (rho * kyy).sum((1, 2))
+    cxy = (rho * kxy).sum((1, 2))  # Sum over +-lag: symmetric (kyx(lag) = kxy(-lag))
+    C = np.empty((n, 2, 2))
+    C[:, 0, 0], C[:, 1, 1] = cxx, cyy
+    C[:, 0, 1] = C[:, 1, 0] = cxy
+    C *= np.asarray(s0sq, float)[:, None, None]
+    return C
 
 
 def lsm(
@@ -448,6 +545,7 @@ def lsm(
     sat_bg: np.ndarray | None = None,
     clip: tuple[float, float] | None = None,
     fit_blur: bool = True,
+    correlated: bool = True,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -498,6 +596,9 @@ def lsm(
         where the model is inside the range.
     fit_blur : bool
         Estimate the blur ``s`` (else hold it at ``s0`` in the fine stage).
+    correlated : bool
+        The centre's covariance allows for residuals correlated between neighbouring pixels
+        (:func:`_correlated_cov`); False: ``s0^2 N^-1`` (independent pixels).
 
     Returns
     -------
@@ -588,6 +689,15 @@ def lsm(
     w_rob = last["w_rob"]
     sigma0 = np.sqrt(last["s0sq"])
     cov = last["cov"]
+    if correlated:
+        cc = _correlated_cov(last["h"], r, last["w"], valid, X, Y, last["s0sq"], p[:, 6])
+        det = cc[:, 0, 0] * cc[:, 1, 1] - cc[:, 0, 1] ** 2
+        tr0 = cov[:, 0, 0] + cov[:, 1, 1]
+        # a sum below the independent pixels' is not taken (fits with many nuisance
+        # parameters, the joint scene, leave anti-correlated residuals)
+        good = ((cc[:, 0, 0] > 0) & (det > 0) & np.all(np.isfinite(cc.reshape(n, 4)), 1)
+                & (cc[:, 0, 0] + cc[:, 1, 1] >= tr0))
+        cov = np.where(good[:, None, None], cc, cov)
 
     # correlation of the data with the fitted mark, the fitted background removed from both
     B = (p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y + p[:, 11:12] * data[6]).astype(

@@ -97,6 +97,9 @@ class Fine:
     scene_tv: int = 0
     #: fitted blur of each mark (px; NaN where not fitted)
     s: np.ndarray | None = None
+    #: crosses: the arms each mark was measured with (2; 1: a lone arm, see
+    #: :func:`measure_one_arm`; 0 where not measured)
+    arms: np.ndarray | None = None
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -551,4 +554,5 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 # the retry holds the accepted marks' median blur (a free blur let fits of
                 # marks on conflicting scene content run to 3-25 px)
                 s0, fit_blur = held, False
-    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit)
+    arms = np.where(ok, 2, 0) if shape.kind == "cross" else None
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms)
