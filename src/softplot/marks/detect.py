@@ -47,7 +47,7 @@ from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.marks import coarse, grid
 from softplot.marks.geometry import estimate_geometry, width_candidates
-from softplot.marks.measure import AcceptRules, measure, median_blur
+from softplot.marks.measure import AcceptRules, measure, measure_one_arm, median_blur
 from softplot.marks.result import Detection
 from softplot.marks.template import MarkShape, cross_shape
 from softplot.runtime import thread_map
@@ -507,6 +507,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
 
     xy = np.full((N, 2), np.nan)
     cov = np.full((N, 2, 2), np.nan)
+    cov_w = np.full((N, 2, 2), np.nan)  # independent pixels: the outlier tests' precision
     score = np.full(N, np.nan)
     cnr = np.full(N, np.nan)
     status = ["missing"] * N
@@ -516,13 +517,13 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         cnr[i] = fine.cnr[k]
         if fine.ok[k]:
             xy[i] = fine.xy[k]
-            cov[i] = fine.cov[k]
+            cov[i], cov_w[i] = fine.cov[k], fine.cov_white[k]
             status[i] = "measured"
             reason[i] = ""
         else:
             reason[i] = fine.reason[k] or "not found"
 
-    sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    sigma = np.sqrt(0.5 * (cov_w[:, 0, 0] + cov_w[:, 1, 1]))
     floor_px = np.where(_outline(film), max(0.1, OUTLIER_FLOOR_MM * ppm),
                         max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
     Hm, residual, rms, dep = _reject_outliers(film, xy, status, reason, g.H, sigma,
@@ -531,12 +532,15 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, A0[idx])
     fitted = np.zeros(N, bool)
     fitted[idx] = True
-    if _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A_fit, s0,
-               init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv,
+    if _rescue(sc, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
+               s0, init_err, sign, rules, radius_ov * f + 1.0, ppm, scene_tv=tv,
                blur=_held_blur(fine), fitted=fitted, departure=dep):
-        sigma = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+        sigma = np.sqrt(0.5 * (cov_w[:, 0, 0] + cov_w[:, 1, 1]))
         Hm, residual, rms, _ = _reject_outliers(film, xy, status, reason, Hm, sigma,
                                                 floor_px=floor_px)
+    arms = np.where(np.array(status) == "measured", 2, 0)
+    _lone_arms(sc, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit, s0,
+               sign, rules, radius_ov * f + 1.0, fitted, _held_blur(fine), fine, ppm)
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -594,7 +598,43 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         timings=timings,
         scene="joint" if tv else "opening",
         mark_geometry=geom.to_json(ppm),
+        arms=arms,
     )
+
+
+def _lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
+               max_shift, fitted, blur, fine, ppm):
+    """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
+    (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
+    their neighbours predict; along the bar the position is that prediction, with the
+    per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
+    predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
+    bar's contrast to noise must be at least half the measured crosses' median. ``cov``:
+    the reported and the independent-pixel covariances. Modifies the arrays in place
+    (``arms`` 1 where a bar was measured)."""
+    st = np.array(status)
+    q = np.where(((st == "missing") | (st == "rejected")) & np.asarray(fitted, bool))[0]
+    meas = np.where(st == "measured")[0]
+    if q.size == 0 or meas.size < 8 or shape.kind != "cross":
+        return
+    r = xy - grid.apply_h(Hm, film)
+    target = grid.apply_h(Hm, film[q]) + _local_fit(film[q], film[meas], r[meas], 16, 2,
+                                                     n_sigma=sigma[meas])
+    loo = r[meas] - _local_prediction(film[meas], r[meas], sigma=sigma[meas])
+    along = max(float(np.sqrt(np.mean(loo**2))), LONE_ARM_ALONG_MIN_PX)
+    held, _ = _position_affine(film, xy, st == "measured", ppm)
+    Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
+    cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
+    f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
+                         along_sd=along, blur=blur, cnr_ref=cnr_ref)
+    for j, i in enumerate(q):
+        if f1.ok[j]:
+            xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
+            status[i], reason[i], arms[i] = "measured", "", 1
+
+
+#: the least standard deviation (px) of a lone bar's position along it (the prediction's)
+LONE_ARM_ALONG_MIN_PX = 0.5
 
 
 def _busy_scene(edge: np.ndarray) -> bool:
@@ -694,6 +734,7 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
     for j, i in enumerate(redo):
         if f2.ok[j]:
             fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
+            fine.cov_white[i] = f2.cov_white[j]
             fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
                 f2.score[j], f2.cnr[j], True, "")
 
@@ -910,6 +951,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
     The blur is held at ``blur`` (px) when given; ``departure``, the outlier test's
     :func:`_departure_model`, tightens that threshold as it does the test's. A cross that
     was not measured at all is predicted from the measured ones alone.
+    ``cov``: the reported and the independent-pixel covariances (N, 2, 2) each.
     Modifies the arrays in place; returns whether any cross was recovered.
     """
     st = np.array(status)
@@ -956,7 +998,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
 
         # the four fits are independent (on the threads); merged in order
         for f2 in thread_map(fit, range(4)):
-            sg = np.sqrt(0.5 * (f2.cov[:, 0, 0] + f2.cov[:, 1, 1]))
+            sg = f2.sigma
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]
             exp = (None if departure is None
@@ -967,7 +1009,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
             for j in np.where(good)[0]:
                 i = rej[grp[j]]
                 best[grp[j]] = f2.score[j]
-                xy[i], cov[i] = f2.xy[j], f2.cov[j]
+                xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
                 status[i], reason[i] = "measured", ""
     return bool(np.isfinite(best).any())
 

@@ -66,7 +66,8 @@ class LSMResult:
     gain : (N,) float
         Contrast: mark level minus the background under the mark (``< 0`` for dark marks).
     cov : (N, 2, 2) float
-        Covariance of the centre (px^2).
+        Covariance of the centre (px^2), the residuals' correlation between neighbouring
+        pixels allowed for (:func:`_correlated_cov`): what is reported.
     sigma0 : (N,) float
         A-posteriori standard deviation of unit weight (grey units).
     noise : (N,) float
@@ -83,6 +84,13 @@ class LSMResult:
         Pixels used.
     level : (N,) float
         The fitted grey level of the mark itself (``a + b`` of the model).
+    cov_white : (N, 2, 2) float
+        ``s0^2 N^-1``: the covariance if the pixels were independent (what the detector's
+        acceptance and outlier tests are tuned on; too small on real scans).
+    part_gain : (N, K) float
+        The contrast of each part alone (mark minus background, as ``gain``) at the fitted
+        geometry: near ``gain`` where the part is there, near 0 where it is not (a cross's
+        bar that faded away); NaN where the part has no weighted pixels.
     """
 
     centre: np.ndarray
@@ -99,11 +107,15 @@ class LSMResult:
     iterations: int
     npix: np.ndarray
     level: np.ndarray
+    cov_white: np.ndarray | None = None
+    part_gain: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
-        """Scalar precision per mark (px): ``sqrt((var_x + var_y) / 2)``."""
-        return np.sqrt(0.5 * (self.cov[:, 0, 0] + self.cov[:, 1, 1]))
+        """Scalar precision per mark (px) for the acceptance and outlier tests:
+        ``sqrt((var_x + var_y) / 2)`` of ``cov_white`` (the tests' thresholds were set on it)."""
+        c = self.cov if self.cov_white is None else self.cov_white
+        return np.sqrt(0.5 * (c[:, 0, 0] + c[:, 1, 1]))
 
     @property
     def cnr(self) -> np.ndarray:
@@ -688,7 +700,7 @@ def lsm(
     noise = _mad(r, valid)
     w_rob = last["w_rob"]
     sigma0 = np.sqrt(last["s0sq"])
-    cov = last["cov"]
+    cov = cov_white = last["cov"]
     if correlated:
         cc = _correlated_cov(last["h"], r, last["w"], valid, X, Y, last["s0sq"], p[:, 6])
         det = cc[:, 0, 0] * cc[:, 1, 1] - cc[:, 0, 1] ** 2
@@ -715,9 +727,18 @@ def lsm(
     good = (w_rob > 0.5) & near
     K = 4 if shape.kind == "cross" else 1
     support = np.empty((n, K))
+    part_gain = np.full((n, K), np.nan)
+    wf = last["w"] * vf
     for k in range(K):
         sel = near & (parts == k)
         support[:, k] = (good & sel).sum(1) / np.maximum(sel.sum(1), 1)
+        # the contrast of this part alone at the fitted geometry (the regression of data
+        # minus fitted background on the template over the part's weighted pixels)
+        wk = np.where(parts == k, wf, 0.0)
+        den = (wk * T * T).sum(1, dtype=float)
+        num = (wk * T * (G - B)).sum(1, dtype=float)
+        part_gain[:, k] = np.where(den > 1e-6 * np.maximum(wk.sum(1), 1e-12), num /
+                                   np.maximum(den, 1e-30), np.nan)
 
     return LSMResult(
         centre=p[:, 0:2] + ref,
@@ -734,4 +755,6 @@ def lsm(
         iterations=it,
         npix=npix,
         level=p[:, 7] + p[:, 8],
+        cov_white=cov_white,
+        part_gain=part_gain,
     )

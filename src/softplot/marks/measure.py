@@ -16,7 +16,7 @@ from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import thread_map
 
-__all__ = ["patches", "Fine", "measure", "AcceptRules"]
+__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules"]
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -76,6 +76,10 @@ class AcceptRules:
     max_sigma: float = 0.5
     max_sigma_ratio: float = 6.0
     max_shift_factor: float = 1.5
+    #: a cross's bar whose halves have less than this share of the other bar's contrast is
+    #: not there (:func:`lone_bar`), one whose halves have more than ``bar_present`` is
+    bar_absent: float = 0.5
+    bar_present: float = 0.7
 
 
 @dataclass
@@ -83,7 +87,7 @@ class Fine:
     """Fine-stage results over N marks (pixel system)."""
 
     xy: np.ndarray
-    cov: np.ndarray
+    cov: np.ndarray  # reported (:attr:`softplot.marks.lsm.LSMResult.cov`)
     score: np.ndarray
     cnr: np.ndarray
     ok: np.ndarray
@@ -100,6 +104,14 @@ class Fine:
     #: crosses: the arms each mark was measured with (2; 1: a lone arm, see
     #: :func:`measure_one_arm`; 0 where not measured)
     arms: np.ndarray | None = None
+    #: the independent-pixel covariance (the acceptance and outlier tests' precision)
+    cov_white: np.ndarray | None = None
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """``sqrt((var_x + var_y) / 2)`` of :attr:`cov_white` (px): the tests' precision."""
+        c = self.cov if self.cov_white is None else self.cov_white
+        return np.sqrt(0.5 * (c[:, 0, 0] + c[:, 1, 1]))
 
 
 def _angle(A: np.ndarray) -> np.ndarray:
@@ -408,6 +420,8 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
     parts_ok = (res.support >= rules.min_part_support).sum(1)
     need = min(rules.min_parts, res.support.shape[1])
     fail(parts_ok < need, "mark partly hidden")
+    if res.part_gain is not None and res.part_gain.shape[1] == 4:
+        fail(lone_bar(res.part_gain, res.gain, rules) >= 0, "one bar only")
     shift = np.hypot(*(res.centre - anchor).T)
     fail(shift > max_shift, "moved away from the prediction")
     det0 = np.abs(np.linalg.det(A0))
@@ -484,12 +498,13 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     if n == 0:
         z = np.zeros(0)
         return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None,
-                    np.zeros((0, 2, 2)), z)
+                    np.zeros((0, 2, 2)), z, cov_white=np.zeros((0, 2, 2)))
     if anchor is None:
         anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
     anchor = np.asarray(anchor, float).reshape(-1, 2)
     xy = np.full((n, 2), np.nan)
     cov = np.full((n, 2, 2), np.nan)
+    cov_w = np.full((n, 2, 2), np.nan)
     score = np.full(n, np.nan)
     cnr = np.full(n, np.nan)
     ok = np.zeros(n, bool)
@@ -545,6 +560,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
                 score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
                 s_fit[i] = res.s[j]
+                cov_w[i] = res.cov_white[j]
             if not good[j]:
                 retry.append(i)
         if p_i == 0 and retry:
@@ -555,4 +571,123 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 # marks on conflicting scene content run to 3-25 px)
                 s0, fit_blur = held, False
     arms = np.where(ok, 2, 0) if shape.kind == "cross" else None
-    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms)
+    return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms,
+                cov_w)
+
+
+def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.ndarray:
+    """Crosses of which only one bar is there, from the contrast of each half-arm alone
+    (:attr:`softplot.marks.lsm.LSMResult.part_gain`) relative to the stronger bar's (the mean
+    of its halves; the whole cross's contrast is diluted by a missing bar): every half of
+    the other bar that has pixels is below ``rules.bar_absent`` of it, every half of this
+    one above ``rules.bar_present``. Returns the axis of the bar that is there (0: u,
+    1: v) or -1, per cross (a half without weighted pixels, NaN, counts for neither)."""
+    r = np.asarray(part_gain, float) * np.sign(np.asarray(gain, float))[:, None]
+    with np.errstate(all="ignore"):
+        bars = np.stack([np.nanmean(r[:, [0, 2]], 1), np.nanmean(r[:, [1, 3]], 1)], 1)
+        ref = np.nanmax(bars, 1)
+        q = r / ref[:, None]
+    fin = np.isfinite(q)
+
+    def every(a, b, test):
+        return (fin[:, a] | fin[:, b]) & (~fin[:, a] | test(q[:, a])) & (~fin[:, b] | test(q[:, b]))
+
+    absent = lambda x: x < rules.bar_absent  # noqa: E731
+    there = lambda x: x > rules.bar_present  # noqa: E731
+    ok = np.isfinite(ref) & (ref > 0)
+    out = np.full(len(r), -1)
+    out[ok & every(0, 2, there) & every(1, 3, absent)] = 0
+    out[ok & every(1, 3, there) & every(0, 2, absent)] = 1
+    return out
+
+
+def lone_arm_keep(shape: MarkShape, u, v, axis: int) -> np.ndarray:
+    """Pixels of a cross's bar along mark-frame axis ``axis`` (0: the u bar, 1: the v bar):
+    those nearer that axis than the other, i.e. the two half-arms of the bar and its half of
+    the central square (mark-frame ``u``, ``v`` in px)."""
+    return np.abs(v) <= np.abs(u) if axis == 0 else np.abs(u) <= np.abs(v)
+
+
+def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
+                    sign: int, rules: AcceptRules | None = None, *, max_shift: float,
+                    cnr_ref: float | None = None, along_sd: np.ndarray | float = 1.0,
+                    blur: float | None = None) -> Fine:
+    """Crosses of which only one bar is visible (the other faded, aliased, scratched or
+    covered), measured as a line: precise across the bar, nothing along it.
+
+    Each cross is fitted twice from its predicted centre ``c0`` (pixel system) with the
+    predicted affine ``A0`` held: once with only the pixels of the u bar, once with only
+    those of the v bar (:func:`lone_arm_keep`; the others are left out, as outside the
+    scan), scene and robust weights as in :func:`measure`. A bar is accepted when its fit
+    passes the acceptance tests of ``rules`` for its two half-arms (polarity, contrast to
+    noise, correlation with the bar, both half-arms supported, at most ``max_shift`` px
+    across from ``c0``) and, with ``cnr_ref`` (the two-armed crosses' median contrast to
+    noise), its contrast to noise is at least half that: a bar of the reseau, not a faint
+    scene line. Of two accepted bars the better-correlated is kept (a cross whose two bars
+    both pass is a whole cross the caller's tests refused: not claimed here).
+
+    The bar fixes the centre across it only: its tips are the part of a cross that fades
+    first, and its length is not known (a certificate's is a starting guess). So the
+    centre is the fit's across the bar and the prediction ``c0`` along it; the covariance
+    (pixel system) is the fit's variance across the bar and ``along_sd**2`` (px^2, the
+    prediction's error, per cross or one value) along it. ``Fine.arms`` is 1 where a bar
+    was measured, 0 elsewhere.
+    """
+    rules = rules or AcceptRules()
+    c0 = np.asarray(c0, float).reshape(-1, 2)
+    n = len(c0)
+    A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2)).copy()
+    along_sd = np.broadcast_to(np.asarray(along_sd, float), (n,))
+    out = Fine(np.full((n, 2), np.nan), np.full((n, 2, 2), np.nan), np.full(n, np.nan),
+               np.full(n, np.nan), np.zeros(n, bool), ["no bar found"] * n, None,
+               A0.copy(), None, 0, np.full(n, np.nan), np.zeros(n, int),
+               np.full((n, 2, 2), np.nan))
+    if n == 0 or shape.kind != "cross":
+        return out
+    s_fit = float(blur) if blur is not None else s0
+    sv = np.linalg.svd(A0, compute_uv=False)
+    grow = float(1.0 / max(sv.min(), 1e-3))
+    half = int(np.ceil(shape.extent * grow + 3.0 * s_fit + 3))
+    stack, origin = patches(scan, c0, half)
+    bg, wt, _ = scene_background(stack, shape, s_fit, sign)
+    u, v = patch_frame(origin, c0, A0, stack.shape)
+    passed = np.zeros((n, 2), bool)
+    fits = []
+    for axis in (0, 1):
+        keep = lone_arm_keep(shape, u, v, axis)
+        st = np.where(keep, stack, np.nan).astype(np.float32)
+        res = lsm(st, origin, c0, A0, shape, s0=s_fit, init_err=0.5, fit_shape=False,
+                  background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0),
+                  fit_blur=blur is None, arm_check=False)
+        parts = (0, 2) if axis == 0 else (1, 3)
+        ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.gain)
+        ok &= np.sign(res.gain) == sign
+        ok &= res.cnr >= rules.min_cnr
+        ok &= res.score >= rules.min_score
+        ok &= np.all(res.support[:, parts] >= rules.min_part_support, 1)
+        # across the bar: the normal of the bar in the pixel system (the gradient of the
+        # mark-frame coordinate across it)
+        nrm = A0[:, 1 - axis, :] / np.linalg.norm(A0[:, 1 - axis, :], axis=1)[:, None]
+        across = np.einsum("ij,ij->i", res.centre - c0, nrm)
+        ok &= np.abs(np.nan_to_num(across, nan=np.inf)) <= max_shift
+        ok &= np.nan_to_num(res.sigma, nan=np.inf) <= rules.max_sigma
+        if cnr_ref is not None and cnr_ref > 0:
+            ok &= res.cnr >= 0.5 * cnr_ref
+        passed[:, axis] = ok
+        fits.append((res, nrm, across))
+    one = passed.sum(1) == 1
+    for i in np.where(one)[0]:
+        axis = int(np.argmax(passed[i]))
+        res, nrm, across = fits[axis]
+        nv = nrm[i]
+        tv = np.array([-nv[1], nv[0]])
+        var_n = float(nv @ res.cov[i] @ nv)
+        out.xy[i] = c0[i] + across[i] * nv
+        out.cov[i] = var_n * np.outer(nv, nv) + float(along_sd[i]) ** 2 * np.outer(tv, tv)
+        out.cov_white[i] = (float(nv @ res.cov_white[i] @ nv) * np.outer(nv, nv)
+                            + float(along_sd[i]) ** 2 * np.outer(tv, tv))
+        out.score[i], out.cnr[i], out.s[i] = res.score[i], res.cnr[i], res.s[i]
+        out.ok[i], out.reason[i], out.arms[i] = True, "", 1
+    for i in np.where(passed.all(1))[0]:
+        out.reason[i] = "both bars seen but the cross refused"
+    return out

@@ -80,6 +80,10 @@ class Detection:
         The reseau crosses' size as measured on the scan (film mm):
         ``{"arm_length_mm", "line_width_mm", "spread": {...}, "n", "source"}``
         (:class:`softplot.marks.geometry.MarkGeometry`); None for fiducial cameras.
+    arms : (N,) int or None
+        Reseau crosses: the bars a measured cross was measured with, 2 (a whole cross) or 1
+        (only one bar visible: its position across the bar is measured, along it the
+        position is the prediction and its variance in ``cov`` large); 0 where not measured.
     """
 
     image: str
@@ -109,6 +113,7 @@ class Detection:
     scene: str = "opening"
     mark_geometry: dict | None = None
     cov: np.ndarray | None = None
+    arms: np.ndarray | None = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -152,6 +157,8 @@ class Detection:
                 "cov": (None if self.cov is None or not np.isfinite(self.cov[i]).all()
                         else [[_num(self.cov[i, 0, 0], 8), _num(self.cov[i, 0, 1], 8)],
                               [_num(self.cov[i, 1, 0], 8), _num(self.cov[i, 1, 1], 8)]]),
+                "arms": (int(self.arms[i]) if self.arms is not None and ok
+                         and self.status[i] == "measured" and self.arms[i] > 0 else None),
                 "cnr": _num(self.cnr[i], 2),
                 "residual_x": _num(self.residual[i, 0], 4),
                 "residual_y": _num(self.residual[i, 1], 4),

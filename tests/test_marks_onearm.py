@@ -1,0 +1,68 @@
+"""Crosses of which only one bar is visible: measured as a line (precise across the bar, a
+large variance along it, ``arms: 1``); crosses with no bar are never claimed."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from softplot.io import Scan
+from softplot.marks import detect
+from softplot.marks.crb import centre_crb, effective_noise
+from softplot.marks.template import MarkShape
+from softplot.synthetic import ScanSpec, render_scan
+from softplot.synthetic.mapping import TruthMapping
+
+
+def _run(seed, **kw):
+    spec = ScanSpec(dpi=600, one_armed=3, **kw)
+    img, truth = render_scan("rollei-6006", spec, seed)
+    det = detect(Scan.from_array(img, dpi=600), "rollei-6006")
+    return det, json.loads(json.dumps(det.to_json())), truth
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_one_armed_crosses_are_measured_across_their_bar(seed):
+    det, doc, truth = _run(seed)
+    tm = {m["name"]: m for m in truth["marks"]}
+    mp = TruthMapping.from_truth(truth)
+    r = truth["render"]
+    ppm = truth["dpi"] / 25.4
+    found = 0
+    for m in doc["marks"]:
+        t = tm[m["name"]]
+        if m["status"] == "measured":
+            assert m["arms"] == t["arms"], (m["name"], m["arms"], t["arms"])
+        if t["arms"] != 1:
+            continue
+        assert m["status"] == "measured", (m["name"], m["reason"])
+        found += 1
+        along = mp.jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][
+            :, 0 if t["arm_axis"] == "x" else 1]
+        tv = along / np.hypot(*along)
+        nv = np.array([-tv[1], tv[0]])
+        C = np.array(m["cov"])
+        e = np.array([m["x"] - t["x"], m["y"] - t["y"]])
+        var_n, var_t = nv @ C @ nv, tv @ C @ tv
+        # honest: large along the bar, small across it
+        assert var_t >= 0.25 - 1e-6 and var_t > 100 * var_n
+        # across: within the 1-D bound of the bar (the per-axis bound of the cross as drawn),
+        # allowing for a sample of one (4 bounds) and the sweep's 1.25 on average
+        shape = MarkShape("cross", length=t["arm_length_mm"] * ppm, width=t["line_width_mm"] * ppm)
+        noise = effective_noise(r["noise_sigma"], truth["bit_depth"])
+        crb = centre_crb(shape, r["blur_sigma_px"], abs(t["contrast"]), noise, phases=2)
+        assert abs(e @ nv) < 4 * 1.25 * crb + 0.005, (m["name"], e @ nv, crb)
+        assert abs(e @ nv) < 4 * np.sqrt(var_n), (m["name"], e @ nv, np.sqrt(var_n))
+    assert found == 3
+
+
+def test_no_claim_where_neither_bar_is_visible():
+    """A flat dark region over whole rows: the crosses there show no bar; none is claimed,
+    as a cross or as a lone bar, while the one-armed crosses elsewhere are measured."""
+    det, doc, truth = _run(4, dark_rows=((3, 4),), dark_level=0.0)
+    tm = {m["name"]: m for m in truth["marks"]}
+    dark = [m for m in doc["marks"] if tm[m["name"]]["arms"] == 0]
+    assert dark, "the render has crosses without a visible bar"
+    assert all(m["status"] != "measured" for m in dark)
