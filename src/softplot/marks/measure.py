@@ -5,6 +5,7 @@ All positions are in the pixel system of the full-resolution scan.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, fields
 
 import cv2
@@ -583,7 +584,8 @@ def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.
     one above ``rules.bar_present``. Returns the axis of the bar that is there (0: u,
     1: v) or -1, per cross (a half without weighted pixels, NaN, counts for neither)."""
     r = np.asarray(part_gain, float) * np.sign(np.asarray(gain, float))[:, None]
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no bar, NaN
         bars = np.stack([np.nanmean(r[:, [0, 2]], 1), np.nanmean(r[:, [1, 3]], 1)], 1)
         ref = np.nanmax(bars, 1)
         q = r / ref[:, None]
@@ -618,7 +620,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     Each cross is fitted twice from its predicted centre ``c0`` (pixel system) with the
     predicted affine ``A0`` held: once with only the pixels of the u bar, once with only
     those of the v bar (:func:`lone_arm_keep`; the others are left out, as outside the
-    scan), scene and robust weights as in :func:`measure`. A bar is accepted when its fit
+    scan), scene and robust weights as in :func:`measure`. A bar is accepted when the other
+    bar's fit finds less than ``rules.bar_absent`` of its contrast, and its fit
     passes the acceptance tests of ``rules`` for its two half-arms (polarity, contrast to
     noise, correlation with the bar, both half-arms supported, at most ``max_shift`` px
     across from ``c0``) and, with ``cnr_ref`` (the two-armed crosses' median contrast to
@@ -675,6 +678,13 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
             ok &= res.cnr >= 0.5 * cnr_ref
         passed[:, axis] = ok
         fits.append((res, nrm, across))
+    # the other bar must be absent: its own fit has less than bar_absent of this bar's
+    # contrast (a cross whose second bar is there but was refused - pulled by the scene,
+    # partly hidden - is not measured from one bar)
+    g = [np.abs(np.where(np.sign(f[0].gain) == sign, f[0].gain, 0.0)) for f in fits]
+    g = [np.nan_to_num(x, nan=0.0) for x in g]
+    passed[:, 0] &= g[1] < rules.bar_absent * g[0]
+    passed[:, 1] &= g[0] < rules.bar_absent * g[1]
     one = passed.sum(1) == 1
     for i in np.where(one)[0]:
         axis = int(np.argmax(passed[i]))
