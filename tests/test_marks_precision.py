@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from softplot.io import Scan
-from softplot.marks import detect, lsm as lsm_mod, measure as measure_mod
+from softplot.marks import detect
+from softplot.marks import lsm as lsm_mod
+from softplot.marks import measure as measure_mod
 from softplot.synthetic import ScanSpec, render_scan
 
 CASES = {
