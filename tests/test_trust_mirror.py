@@ -180,3 +180,15 @@ def test_symmetric_layout_says_the_options_decide(asym, tmp_path, capsys):
     assert code == 0, err
     assert "rests on --mirror" in out and "rest on --rotate" in out
     assert json.loads(js.read_text())["side_from"] == "--mirror"
+
+
+def test_process_refuses_a_contradicted_orientation(asym, tmp_path, capsys):
+    """``process`` (and ``batch``, through the same detection) fails the scan with the same
+    line; the summary names it."""
+    d, scans, _ = asym
+    out = tmp_path / "o"
+    code = run(["process", scans["mirrored"], "--camera", ASYMMETRIC, "--out", out])
+    capsys.readouterr()
+    assert code == 1
+    summary = (out / "summary.csv").read_text()
+    assert "mirrored left-right" in summary and "give --mirror" in summary
