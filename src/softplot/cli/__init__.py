@@ -72,7 +72,7 @@ COMMAND_TABLE: list[tuple[str, str, str]] = [
     ("view", "view",
      "Open plotting SESSION in the browser: stereo view, floating mark, plotting."),
     ("match", "match",
-     "Tie points between two scans of a stereo pair, each with its precision."),
+     "Tie points of a stereo pair (two scans) or a block (more: a bundle project)."),
     ("epipolar", "epipolar",
      "Normalised images of the oriented pair of a plotting SESSION folder."),
     ("dsm", "dsm",

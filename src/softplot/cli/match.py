@@ -66,7 +66,7 @@ def match_options(f):
 @click.option("--overwrite", is_flag=True, help="Replace the outputs of an earlier run.")
 def command(scans, camera, detection_left, detection_right, detections, out, max_ties,
             min_corr, as_block, workers, scheduler, overwrite) -> None:
-    """Tie points between scans: LEFT RIGHT (a stereo pair) or SCAN SCAN SCAN ... (a block).
+    """Tie points of a stereo pair (two scans) or a block (more: a bundle project).
 
     A pair: SIFT in the film-corrected images (ratio test, mutual check), five-point RANSAC
     on photo coordinates, least-squares matching in the scans (to a fraction of a pixel, with
