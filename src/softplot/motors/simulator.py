@@ -325,6 +325,7 @@ class GrblSimulator:
         self.build_info = ""  # $I=... (EEPROM)
         self.pins = ""  # input pins triggered (Pn:)
         self.log: list[str] = []  # every line received (diagnostics for tests)
+        self.realtime_log: set[int] = set()  # the real-time bytes received
         self.moves = 0
         self.boots = 0
         self.state = "Idle"
@@ -546,6 +547,8 @@ class GrblSimulator:
 
     # ------------------------------------------------------------------ input
     def _byte(self, b: int):
+        if b in (0x3F, 0x21, 0x7E, 0x18, 0x85):
+            self.realtime_log.add(b)
         if self._paused():
             if b == 0x18:
                 self.pending_reset = True
