@@ -231,3 +231,40 @@ def test_calibrate_series_names_the_blunder_per_series(tmp_path, capsys):
     for s in ser:
         _keys(s, "baarda-w")
     assert obs in ser[0]["blunders"][:1] + ser[1]["blunders"][:1]
+
+
+def test_bundle_without_a_stated_precision_uses_the_tau_test(tmp_path, capsys):
+    """A project that states no image precision (no ``sigma_image_um``, no ``sx, sy``) whose
+    measurements are 3x worse than the 2 um default: the w-test against the default would flag
+    a good part of them; Pope's tau test against the a posteriori sigma0 names the blunder."""
+    proj, obs = _testfield(tmp_path, capsys, 40)
+    cams = proj / "cameras.toml"
+    cams.write_text("\n".join(ln for ln in cams.read_text().splitlines()
+                              if not ln.startswith("sigma_image_um")) + "\n")
+    rng = np.random.default_rng(3)
+    lines = (proj / "observations.csv").read_text().splitlines()
+    out = ["photo,name,x,y"]
+    for ln in lines[1:]:
+        f = ln.split(",")
+        x, y = float(f[2]) + rng.normal(0, 0.006), float(f[3]) + rng.normal(0, 0.006)
+        if f"{f[0]}/{f[1]}" == obs:
+            x += 0.100  # 0.13 mm in all: about 20 sigma
+        out.append(f"{f[0]},{f[1]},{x!r},{y!r}")
+    (proj / "observations.csv").write_text("\n".join(out) + "\n")
+    js = tmp_path / "b.json"
+    code, stdout, err = run(["bundle", proj, "--free", "c,x0,y0,k1", "--json", js], capsys)
+    assert code == 0, err
+    d = json.loads(js.read_text())
+    assert d["snooping_test"]["test"] == "pope-tau"
+    assert 2.0 < d["snooping_test"]["sigma0"] < 5.0  # a posteriori, in units of the default
+    assert d["blunders"][0] == obs
+    assert len(d["blunders"]) <= 3, d["blunders"]
+    assert "tau" in stdout
+    # the same project with the precision stated as 2 um: the w-test, which now flags many
+    cams.write_text(cams.read_text().replace('lens = "', 'sigma_image_um = 2.0\nlens = "'))
+    js = tmp_path / "w.json"
+    code, _, err = run(["bundle", proj, "--free", "c,x0,y0,k1", "--json", js], capsys)
+    assert code == 0, err
+    d = json.loads(js.read_text())
+    assert d["snooping_test"]["test"] == "baarda-w"
+    assert len(d["blunders"]) > 10

@@ -155,9 +155,11 @@ def snooping_keys(res, alpha0: float) -> dict:
 
     The bundle tests every image coordinate with Baarda's w-test: ``w = v / (sigma sqrt(qvv))``
     with the image standard errors of the project (``sigma_image_um`` in cameras.toml, or the
-    observations' own), i.e. an a priori standard error of unit weight of 1. ``blunders`` names
-    the flagged observations ``PHOTO/POINT``, the largest ``|w|`` first; the test is ``none``
-    when no redundancy numbers were computed (``--covariance interior``) or ``r = 0``.
+    observations' own), i.e. an a priori standard error of unit weight of 1. When the project
+    states neither, the standard errors are only a default and the test is Pope's tau test,
+    ``tau = w / sigma0`` against the a posteriori sigma0. ``blunders`` names the flagged
+    observations ``PHOTO/POINT``, the largest statistic first; the test is ``none`` when no
+    redundancy numbers were computed (``--covariance interior``) or the redundancy is too small.
     """
     import numpy as np
 
@@ -169,15 +171,18 @@ def snooping_keys(res, alpha0: float) -> dict:
         for f, p in zip(d.obs_photo, d.obs_point, strict=True)
     ]
     w = np.asarray(res.w, dtype=float).ravel()  # (2m,): x, y of every observation
-    tested = bool(np.isfinite(w).any()) and res.redundancy > 0
+    test = getattr(res, "snooping_test", "baarda-w")
+    tau = test == "pope-tau"
+    stat = w / res.sigma0 if tau else w
+    tested = test != "none" and bool(np.isfinite(stat).any()) and res.redundancy > 0
     sn = Snooping(
-        test="baarda-w" if tested else "none",
+        test=test if tested else "none",
         alpha0=float(alpha0),
         critical_value=float(res.critical) if tested else float("nan"),
-        statistic=w if tested else np.full(w.size, np.nan),
-        flagged=(np.abs(np.nan_to_num(w, nan=0.0)) > res.critical) if tested
+        statistic=stat if tested else np.full(w.size, np.nan),
+        flagged=(np.abs(np.nan_to_num(stat, nan=0.0)) > res.critical) if tested
         else np.zeros(w.size, bool),
-        sigma0=1.0,
+        sigma0=float(res.sigma0) if tau else 1.0,
         redundancy=int(res.redundancy),
     )
     return snooping_json(sn, [lab for lab in labels for _ in range(2)])

@@ -49,7 +49,7 @@ import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from softplot.adjust._blas import blas_threads
-from softplot.adjust.core import critical_value
+from softplot.adjust.core import critical_value, tau_critical_value
 from softplot.adjust.sparse_bundle import (
     Evaluation,
     LMOptions,
@@ -207,6 +207,11 @@ class BundleData:
         Check points: known coordinates in ``control`` not used as control.
     series : list of str, optional
         Series label of every photo (test-field calibration in series).
+    precision_given : bool
+        True when the image standard errors are stated (``sigma_image_um`` or the
+        observations' ``sx, sy``): data snooping by Baarda's w-test. False: they are only
+        a default, known relative to each other at best, and the observations are tested by
+        Pope's tau test against the a posteriori sigma0.
     """
 
     cameras: list
@@ -226,6 +231,7 @@ class BundleData:
     check: np.ndarray | None = None
     series: list | None = None
     cov_xy: np.ndarray | None = None
+    precision_given: bool = True
 
     def __post_init__(self) -> None:
         F, P = len(self.photo_names), len(self.point_names)
@@ -662,6 +668,9 @@ class BundleResult:
     warnings: list
     correlation_eo_max: list  # per camera: {param: (max |corr|, photo, eo name)}
     history: list = field(default_factory=list)
+    #: "baarda-w" (w against the stated precision), "pope-tau" (tau = w / sigma0, the
+    #: precision not stated) or "none"; ``critical`` is that test's critical value
+    snooping_test: str = "baarda-w"
     _internals: dict | None = field(default=None, repr=False)
 
     def full_point_covariance(self) -> np.ndarray:
@@ -1152,10 +1161,17 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
         with np.errstate(invalid="ignore", divide="ignore"):
             ok = (rnum > 1e-8) & (qvv > 0)
             w = np.where(ok, num / np.sqrt(np.clip(qvv, 1e-300, None)), np.nan)
-    flagged = np.nan_to_num(np.abs(w), nan=0.0).max(axis=1) > crit
+    test, stat = "baarda-w", w
+    if not d.precision_given:
+        # the precision is a default: standardise by the a posteriori sigma0 (Pope's tau)
+        crit = tau_critical_value(int(redundancy), opt.alpha0)
+        test = "pope-tau" if np.isfinite(crit) and sigma0 > 0 else "none"
+        stat = w / sigma0 if test == "pope-tau" else np.full_like(w, np.nan)
+    flagged = np.nan_to_num(np.abs(stat), nan=0.0).max(axis=1) > crit
     if flagged.any():
+        sym = "tau" if test == "pope-tau" else "w"
         warnings.append(
-            f"{int(flagged.sum())} observation(s) fail data snooping (|w| > {crit:.2f})"
+            f"{int(flagged.sum())} observation(s) fail data snooping (|{sym}| > {crit:.2f})"
         )
     return BundleResult(
         data=d,
@@ -1190,6 +1206,7 @@ def _bundle_adjust(data: BundleData, opt: BundleOptions) -> BundleResult:
         redundancy_numbers=rnum,
         flagged=flagged,
         critical=crit,
+        snooping_test=test,
         warnings=warnings,
         correlation_eo_max=eo_max,
         history=res.history,

@@ -149,6 +149,7 @@ def read_cameras(path: Path) -> list[BundleCamera]:
                 raise SoftplotError(
                     f"{where}: image_width_px and image_height_px must be integers"
                 ) from exc
+        bc.sigma_image_given = "sigma_image_um" in t
         bc.sigma_image_mm = float(t.get("sigma_image_um", 2.0)) / 1000.0
         if not bc.sigma_image_mm > 0:
             raise SoftplotError(f"{where}: sigma_image_um must be > 0")
@@ -198,6 +199,7 @@ def read_project(folder: str | Path) -> BundleData:
         raise SoftplotError("observations.csv: no observations")
     pt_idx: dict[str, int] = {}
     op, oq, xy, sxy, cxy = [], [], [], [], []
+    given = []  # per observation: its precision stated (own sx, sy or the camera's sigma_image_um)
     for k, r in enumerate(orow):
         where = f"observations.csv row {k + 2}"
         if r["photo"] not in ph_idx:
@@ -209,6 +211,8 @@ def read_project(folder: str | Path) -> BundleData:
         if xy[-1][0] is None or xy[-1][1] is None:
             raise SoftplotError(f"{where}: x and y are required")
         s0 = cams[pcam[f]].sigma_image_mm
+        own = all(str(r.get(k) or "").strip() != "" for k in ("sx", "sy"))
+        given.append(getattr(cams[pcam[f]], "sigma_image_given", True) or own)
         sxy.append([_num(r.get("sx", ""), where, s0), _num(r.get("sy", ""), where, s0)])
         cxy.append(_num(r.get("sxy", ""), where, 0.0))
     P = len(pt_idx)
@@ -258,6 +262,7 @@ def read_project(folder: str | Path) -> BundleData:
         xy=np.array(xy, float),
         sigma_xy=np.array(sxy, float),
         cov_xy=np.array(cxy, float),
+        precision_given=all(given),
         photo_fixed=np.array(fixed),
         check=check,
     )
@@ -284,7 +289,8 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
         sim = getattr(c, "sigma_image_mm", None)
         if sim is None:
             sim = float(np.median(data.sigma_xy))
-        lines.append(f"sigma_image_um = {sim * 1000.0!r}")
+        if data.precision_given:  # an unstated precision stays unstated (Pope's tau test)
+            lines.append(f"sigma_image_um = {sim * 1000.0!r}")
         if c.pixel_size_mm:
             lines.append(f"pixel_size_um = {c.pixel_size_mm * 1000.0!r}")
         if c.image_size:
@@ -316,7 +322,9 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
     with open(root / "observations.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         cov = data.cov_xy
-        w.writerow(["photo", "name", "x", "y", "sx", "sy"] + ([] if cov is None else ["sxy"]))
+        sig = data.precision_given
+        w.writerow(["photo", "name", "x", "y"] + (["sx", "sy"] if sig else [])
+                   + ([] if cov is None else ["sxy"]))
         for o in range(data.obs_photo.size):
             w.writerow(
                 [
@@ -324,9 +332,9 @@ def write_project(folder: str | Path, data: BundleData, series=None, overwrite=F
                     data.point_names[data.obs_point[o]],
                     repr(float(data.xy[o, 0])),
                     repr(float(data.xy[o, 1])),
-                    repr(float(data.sigma_xy[o, 0])),
-                    repr(float(data.sigma_xy[o, 1])),
                 ]
+                + ([repr(float(data.sigma_xy[o, 0])), repr(float(data.sigma_xy[o, 1]))]
+                   if sig else [])
                 + ([] if cov is None else [repr(float(cov[o]))])
             )
     with open(root / "control.csv", "w", newline="", encoding="utf-8") as fh:

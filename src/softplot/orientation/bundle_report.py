@@ -161,7 +161,13 @@ def text_report(
             f"Check points ({chk['n']}): RMS X {chk['X']:.4g}  Y {chk['Y']:.4g}  Z {chk['Z']:.4g}"
         )
     L.append("")
-    L.append(f"Largest standardised residuals (Baarda w, critical {res.critical:.2f})")
+    if res.snooping_test == "pope-tau":
+        L.append(
+            f"Largest standardised residuals (w; image precision not stated: Pope's tau = "
+            f"w / sigma0, critical |tau| > {res.critical:.2f})"
+        )
+    else:
+        L.append(f"Largest standardised residuals (Baarda w, critical {res.critical:.2f})")
     L.append("-" * 60)
     for r in res.largest_residuals(10):
         wx = "nan" if r["wx"] is None else f"{r['wx']:+.2f}"

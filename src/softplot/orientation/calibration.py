@@ -64,6 +64,7 @@ def subset_photos(data: BundleData, keep) -> BundleData:
         xy=data.xy[o].copy(),
         sigma_xy=data.sigma_xy[o].copy(),
         cov_xy=None if data.cov_xy is None else data.cov_xy[o].copy(),
+        precision_given=data.precision_given,
         photo_fixed=data.photo_fixed[mask].copy(),
         check=data.check[pts].copy(),
         series=None
