@@ -25,16 +25,17 @@ Cases
   8-bit grey, uncompressed TIFF).
 * ``rollei-1200``: the same at 1200 dpi.
 * ``rollei-1200-busy``, ``rollei-2400-busy``: the same over a busy scene (blocks, roads,
-  discs): ``detect`` takes the joint scene estimate there (``scene="auto"``), which costs
-  3-5 times the fine stage; not a case of the speed targets, which name no scene (the
-  other Rollei cases have the renderer's default texture).
+  discs): ``detect`` takes the joint scene estimate there (``scene="auto"``) for the crosses
+  with a scene edge in their footprint (the other Rollei cases have the renderer's default
+  texture).
 * ``aerial-19k``: a 19200 x 19200 px 8-bit scan (230 mm at 12 um) of a Zeiss RMK A 15/23
   frame: a smooth grey background with grain and the 8 fiducials (4 circle-dots, 4 crosses)
   stamped at known positions (the synthetic renderer would take minutes at this size).
 
-Busy scenes (``--busy``): the two busy cases timed in this process with the default joint
-scene estimate and with the band-restricted solve (``scene_tv.BAND_PX = 8``, 40/30
-iterations), alternating, load + detect each; and ``softplot detect`` over ``--batch`` busy
+Busy scenes (``--busy``): the two busy cases timed in this process, load + detect each, with
+the default ``scene="auto"`` (the joint scene estimate only for the crosses with a scene edge
+in their footprint) and with ``scene="joint"`` (every cross), alternating; wall time (median,
+min) and CPU time of the process (all threads); and ``softplot detect`` over ``--batch`` busy
 1200 dpi scans in one process (a subprocess: interpreter start, imports and the compiled
 kernels' loading included) against one scan per process, per scan.
 
@@ -202,12 +203,15 @@ def _load() -> str:
 def busy(runs: int, batch: int) -> None:
     """The busy-scene figures (see the module docstring)."""
     from softplot.io import load_scan
-    from softplot.marks import detect, scene_tv
+    from softplot.marks import detect, kernels
+    from softplot.runtime import threads, tune_allocator
     from softplot.synthetic import ScanSpec, write_scan
 
-    variants = {"default": (scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM),
-                "band 8 px, 40/30": (8.0, 40, 30)}
-    print(f"load average at start: {_load()} (2 cores; figures taken above 1 are provisional)")
+    tune_allocator()  # as the softplot command does
+    kernels.load()
+    variants = {"auto (default)": "auto", "joint on every cross": "joint"}
+    print(f"load average at start: {_load()} (2 cores; figures taken above 1 are provisional); "
+          f"{threads()} threads")
     with tempfile.TemporaryDirectory(prefix="bench_busy_") as tmp:
         d = Path(tmp)
         for dpi in (1200, 2400):
@@ -215,18 +219,18 @@ def busy(runs: int, batch: int) -> None:
                                                              scene="busy"), seed=7,
                                  stem=f"busy-{dpi}")
             times = {k: [] for k in variants}
+            cpu = {k: [] for k in variants}
             for i in range(runs + 1):
-                for k, (band, first, warm) in variants.items():
-                    scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM = \
-                        band, first, warm
-                    t = time.perf_counter()
-                    det = detect(load_scan(path), "rollei-6006")
+                for k, scene in variants.items():
+                    t, c = time.perf_counter(), time.process_time()
+                    det = detect(load_scan(path), "rollei-6006", scene=scene)
                     if i:  # the first round warms caches
                         times[k].append(time.perf_counter() - t)
-            scene_tv.BAND_PX, scene_tv.ITERATIONS, scene_tv.ITERATIONS_WARM = variants["default"]
+                        cpu[k].append(time.process_time() - c)
             for k, v in times.items():
-                print(f"busy {dpi} dpi, {k}: median {statistics.median(v):.3f} s (min "
-                      f"{min(v):.3f}, n={len(v)}), scene model {det.scene}")
+                print(f"busy {dpi} dpi, {k}: load + detect median {statistics.median(v):.3f} s "
+                      f"(min {min(v):.3f}, n={len(v)}); CPU median "
+                      f"{statistics.median(cpu[k]):.3f} s; scene model {det.scene}")
         if batch:
             paths = [write_scan(d, "rollei-6006", ScanSpec(dpi=1200, rotation_deg=1.5,
                                                             scene="busy"), seed=100 + i,

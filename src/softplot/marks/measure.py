@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from softplot.marks import scene_tv
+from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
@@ -216,11 +217,12 @@ def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndar
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
-         scene_tv=0, rules=None, first=None, edges=False, fit_blur=True):
+         scene_tv=0, rules=None, first=None, edges=False, fit_blur=True, tv_select=None):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
-    ``first``: that first fit, when it was made already by a call with the same arguments).
+    ``first``: that first fit, when it was made already by a call with the same arguments;
+    ``tv_select``: the marks the joint scene refits, default all).
     Returns ``(LSMResult, edge)``; ``edge``, with ``edges``: :func:`_footprint_gradient` over
     the fitted contrast, else (and for other marks) NaN."""
     sv = np.linalg.svd(A0, compute_uv=False)
@@ -248,7 +250,7 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
             edge = top / np.maximum(np.abs(res.gain), 1e-6)
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
-                               rules or AcceptRules(), fit_blur)
+                               rules or AcceptRules(), fit_blur, tv_select)
     return res, edge
 
 
@@ -289,7 +291,7 @@ REFIT_SETTLE = 0.25
 
 
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
-                 fit_blur=True):
+                 fit_blur=True, select=None):
     """LSM again with the scene under each fitted cross estimated jointly with it.
 
     ``passes`` times: the cross of the last fit (its blurred template ``T`` and its fitted grey
@@ -305,8 +307,9 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     acceptance tests: on a negative read as a positive, 25 of 121 did, and
     :func:`softplot.marks.detect.detect` refuses such a scan because its measured crosses lie
     off any grid.) A cross whose refit fails, changes polarity or moves by more than
-    :data:`REFIT_MAX_MOVE` keeps its last fit. Patches in the pixel system (``origin`` their
-    [0, 0] pixels).
+    :data:`REFIT_MAX_MOVE` keeps its last fit. ``select`` (N bool, optional): only these
+    marks are refitted (the TV weight and blur still from the whole set). Patches in the pixel
+    system (``origin`` their [0, 0] pixels).
     """
     n = len(res.centre)
     X = np.asarray(bg, np.float32).copy()  # the scene before the blur: the opening's to start
@@ -322,6 +325,10 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         # from all refitted crosses, not from those still moving
         noise_set = max(float(np.median(res.noise[ok])), 1e-4)
         s_med = float(np.median(res.s[ok]))
+        if select is not None:
+            ok &= select
+            if not ok.any():
+                return res
         if p >= REFIT_ALL_PASSES:
             ok &= moved > REFIT_SETTLE * np.nan_to_num(res.sigma, nan=0.0)
             if not ok.any():
@@ -548,9 +555,14 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             scene_tv = auto_tv
 
             def rerun(a, starts=starts, ie=ie, tv=scene_tv, s0=s0, fb=fit_blur):
+                # only the crosses with a scene edge in their footprint
+                # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit
                 k, first = a
+                sel = edge[k] > _scene_tv.EDGE_MIN
+                if not sel.any():
+                    return first
                 return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                            drop_part, tv, rules, first, fit_blur=fb)[0]
+                            drop_part, tv, rules, first, fit_blur=fb, tv_select=sel)[0]
 
             res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
                                                      strict=True))))

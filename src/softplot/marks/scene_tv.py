@@ -59,6 +59,11 @@ def iterations(p: int) -> int:
     return ITERATIONS if p == 0 else ITERATIONS_WARM
 
 
+#: ``scene="auto"`` on a busy scene refits with the joint scene only the crosses whose
+#: footprint holds a scene edge steeper than this x their contrast per px (the scene-edge
+#: figure of :func:`softplot.marks.measure._footprint_gradient`); under the others the
+#: opening's estimate is as good (docs/benchmarks.md, "Busy scenes")
+EDGE_MIN = 0.02
 #: TV weight in units of the patch's noise
 MU = 1.0
 #: with ``band_px`` (:func:`deconv_tv`) the scene is free only in the band around each
