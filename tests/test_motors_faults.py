@@ -188,6 +188,19 @@ def test_reset_while_moving_reports_alarm3_and_replies_stay_in_step():
         assert sim.state == "Alarm"  # ALARM:3 locked it; nothing unlocked it for us
 
 
+def test_status_is_retried_across_the_alarm_pause_and_the_reset():
+    """At real speed: ALARM:3, 0.5 s of silence, the reset drops the pending '?': the status
+    read asks again and gets the report."""
+    with GrblSimulator(time_scale=1) as sim, GrblMotors(sim.path, timeout=2) as m:
+        m.move_to(-15.0, 0.0, wait=False)
+        m.wait(0.3)
+        m.realtime(b"\x18")
+        time.sleep(0.05)
+        assert m.status().state == "Alarm"
+        assert isinstance(m.fault, MotorAlarm) and m.fault.code == 3
+        assert sim.state == "Alarm"
+
+
 # ------------------------------------------------------------------ 7. limits, jog stop, homing
 def test_stop_during_a_jog_waits_for_the_deceleration():
     with GrblSimulator(time_scale=20) as sim, GrblMotors(sim.path, timeout=1) as m:
@@ -201,10 +214,11 @@ def test_stop_during_a_jog_waits_for_the_deceleration():
         assert -100.0 < pos[0] < -5.0
 
 
-def test_failed_homing_is_one_fault():
-    sim = GrblSimulator(time_scale=20, settings={22: 1}, faults="homing-fail=9")
+@pytest.mark.parametrize("code", [8, 9])
+def test_failed_homing_is_one_fault(code):
+    sim = GrblSimulator(time_scale=20, settings={22: 1}, faults=f"homing-fail={code}")
     with sim, GrblMotors(sim.path, timeout=1) as m:
-        with pytest.raises(MotorAlarm, match=r"homing failed.*ALARM:9") as e:
+        with pytest.raises(MotorAlarm, match=rf"homing failed.*ALARM:{code}") as e:
             m.home()
         assert str(e.value).count("ALARM") == 1
         assert any(ln.startswith("[GC:") for ln in m.command("$G"))  # late ok absorbed

@@ -133,9 +133,14 @@ def status(port, timeout, reset):
     help="Seconds to wait for the move to end.",
 )
 @_reset_option
-def move(port, dx, dy, timeout, reset):
+@click.option("--confirm-position", is_flag=True,
+              help="The operator vouches for the controller's present position (checked "
+              "against a reference): lifts an alarm lock ($X) first.")
+def move(port, dx, dy, timeout, reset, confirm_position):
     """Move the secondary carriage to DX, DY (instrument mm) and wait."""
     with _open(port, timeout, reset) as m:
+        if confirm_position:
+            m.confirm_position()
         m.move_to(dx, dy, timeout=timeout)
         px, py = m.position()
         click.echo(f"DX={px:.3f} DY={py:.3f}")

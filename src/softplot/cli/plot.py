@@ -174,6 +174,8 @@ def trace(folder, input_path, code, kind, mode, height, close_line, port, timeou
         if confirm_position:
             mot.confirm_position()
         s = Session.resume(folder, motors=mot)
+        if port:
+            click.echo(_position_note(mot, s.motor_state is not None))
         try:
             tmode = mode or s.mode
             theight = height if height is not None else s.height
@@ -246,6 +248,18 @@ def set_mode(folder, mode, height):
         click.echo(f"session mode {mode}" + (f", height {height:g}" if mode == "contour" else ""))
     finally:
         s.close()
+
+
+def _position_note(mot, restored: bool) -> str:
+    """One line saying why the instrument's position is trusted."""
+    if mot.homed:
+        return "instrument: homed; the session resumes in the homed frame"
+    if mot.confirmed:
+        return "instrument: position confirmed by the operator"
+    if restored:
+        return ("instrument: position valid (machine position and work offset as the session "
+                "left them)")
+    return "instrument: the controller's present position is the session's reference"
 
 
 def _confirm(pl, mot, timeout: float, name: str) -> None:
