@@ -84,6 +84,9 @@ FRAME_STEP = 0.25
 #: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
 #: a part of 3 x 3 crosses with a few missing still passes
 MIN_PART = 6
+#: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
+#: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
+SCALE_TOL = 0.03
 
 
 class DetectionError(SoftplotError):
@@ -187,7 +190,6 @@ def _frame_evidence(ov, f: int, ppm: float):
     lo, hi = np.percentile(sub, [5, 95])
     rng = max(float(hi - lo), 1e-6)
     d = max(2.0, 0.3 * ppm / f)
-    t = np.linspace(0.05, 0.95, 48)
 
     def sample(p):
         x = np.round((p[..., 0] + 0.5) / f - 0.5).astype(int)
@@ -195,27 +197,42 @@ def _frame_evidence(ov, f: int, ppm: float):
         ok = (x >= 0) & (x < W) & (y >= 0) & (y < Hh)
         return np.where(ok, g[np.clip(y, 0, Hh - 1), np.clip(x, 0, W - 1)], np.nan), ok
 
+    def clip(a, b, pad):
+        """Parameters [t0, t1] of the part of segments a -> b (K, 2) within the scan less
+        ``pad`` px (Liang-Barsky), from [0.05, 0.95]; t1 <= t0 where none is."""
+        t0, t1 = np.full(len(a), 0.05), np.full(len(a), 0.95)
+        dd = b - a
+        lim = ((0, pad, W * f - 1 - pad), (1, pad, Hh * f - 1 - pad))
+        for k, lo_, hi_ in lim:
+            for pk, qk in ((-dd[:, k], a[:, k] - lo_), (dd[:, k], hi_ - a[:, k])):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = qk / pk
+                t0 = np.where(pk < 0, np.maximum(t0, t), t0)
+                t1 = np.where(pk > 0, np.minimum(t1, t), t1)
+                t1 = np.where((pk == 0) & (qk < 0), -1.0, t1)
+        return t0, t1
+
     def evidence(corners):
-        corners = np.asarray(corners, float)
-        out = np.zeros(len(corners))
-        for k, q in enumerate(corners):
-            c = q.mean(0)
-            steps = []
-            for e in range(4):
-                a, b = q[e], q[(e + 1) % 4]
-                p = a[None, :] + t[:, None] * (b - a)[None, :]
-                tang = (b - a) / max(np.hypot(*(b - a)), 1e-9)
-                n = np.array([tang[1], -tang[0]])
-                if np.dot(n, 0.5 * (a + b) - c) < 0:
-                    n = -n  # outward
-                gi, oi = sample(p - n * d * f)
-                go, oo = sample(p + n * d * f)
-                ok = oi & oo
-                if ok.sum() < 12:
-                    continue
-                steps.append(abs(float(np.median(gi[ok] - go[ok]))) / rng)
-            out[k] = float(np.sum(np.asarray(steps) - FRAME_STEP)) / 4.0 if steps else 0.0
-        return np.clip(out, -1.0, 1.0)
+        corners = np.asarray(corners, float).reshape(-1, 4, 2)
+        c = corners.mean(1)  # (K, 2)
+        total = np.zeros(len(corners))
+        for e in range(4):  # every shift at once, edge by edge
+            a, b = corners[:, e], corners[:, (e + 1) % 4]
+            tang = (b - a) / np.maximum(np.hypot(*(b - a).T), 1e-9)[:, None]
+            n = np.stack([tang[:, 1], -tang[:, 0]], 1)
+            n *= np.where(np.sum(n * (0.5 * (a + b) - c), 1) < 0, -1.0, 1.0)[:, None]  # out
+            # the part of the edge in the scan, both samples inside: at least 36 overview px
+            # of it (edges outside the scan are left out), sampled at 200 points
+            t0, t1 = clip(a, b, d * f + f)
+            use = np.where((t1 - t0) * np.hypot(*(b - a).T) >= 36.0 * f)[0]
+            if use.size == 0:
+                continue
+            t = t0[use, None] + (t1 - t0)[use, None] * np.linspace(0.0, 1.0, 200)[None, :]
+            p = a[use, None, :] + t[..., None] * (b - a)[use, None, :]  # (U, 200, 2)
+            gi, _ = sample(p - n[use, None, :] * d * f)
+            go, _ = sample(p + n[use, None, :] * d * f)
+            total[use] += np.abs(np.median(gi - go, 1)) / rng - FRAME_STEP
+        return np.clip(total / 4.0, -1.0, 1.0)
 
     return evidence
 
@@ -229,7 +246,7 @@ def _reseau_factor(line_px: float, npix: int) -> int:
     return f
 
 
-def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
+def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full, part=None):
     """NCC on the overview and grid fit for each admissible polarity."""
     res = camera.reseau
     shape_ov = cross_shape(camera, px_per_mm / f)
@@ -238,18 +255,22 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
     R, h = coarse.ncc_map(ov, shape_ov, s_ov, arm_half=arm_half)
     noise_floor = 2e-3
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
+    # the crosses the scan can hold at most (a part of the grid shows fewer than the
+    # certificate's): the number of candidates kept and the polarity's bound follow it
+    n_in = min(res.count, int((scan.width / (res.pitch_x * px_per_mm) + 2)
+                              * (scan.height / (res.pitch_y * px_per_mm) + 2)))
     signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
     cands = {}
     for sg in signs:
         pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                threshold=0.2,
-                               max_peaks=3 * res.count + 100, sign=sg, image=ov,
+                               max_peaks=3 * n_in + 100, sign=sg, image=ov,
                                std_half=max(int(arm_half), 2), min_contrast=noise_floor)
         if len(pk) < 4:
             continue
         # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
         # sum of the ``count`` best ones (with a margin for the order of summation)
-        bound = float(np.sort(pk.score)[::-1][: res.count].sum()) * (1.0 + 1e-9) + 1e-9
+        bound = float(np.sort(pk.score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
         cands[sg] = (pk, bound)
     # fit the polarity that can score most first; another one only if it could still win
     fits = {}
@@ -263,7 +284,7 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full):
                                  px_per_mm=px_per_mm, rotate_deg=rotate_deg,
                                  margin_px=0.5 * shape_ov.length * f,
                                  frame_evidence=_frame_evidence(ov, f, px_per_mm),
-                                 format_mm=camera.format_mm)
+                                 format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
     best = None
     for sg in signs:  # the best score wins, the first polarity on a tie
         g = fits.get(sg)

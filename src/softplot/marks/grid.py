@@ -168,7 +168,8 @@ class GridFit:
     rms : float
         RMS residual (px) of the assigned peaks against ``H``.
     score : float
-        Sum of the assigned peaks' scores.
+        Sum of the assigned peaks' scores above the clutter's (the 90th percentile of the
+        scores of the peaks off the lattice).
     ambiguous : bool
         Other row/col shifts fit the crosses and the format's edges as well (a strip through
         the grid): the one nearest the scan's centre was taken.
@@ -198,6 +199,87 @@ def _fold(a: np.ndarray, period: float) -> np.ndarray:
     return (a + 0.5 * period) % period - 0.5 * period
 
 
+#: bins per lattice pitch of the phase histogram of :func:`_lattice_search` (the true
+#: lattice's peaks fall in a window of 2 x 2 bins: an eighth of a pitch)
+PHASE_BINS = 16
+
+
+def _phase_histograms(d, w, lx, ly, thetas):
+    """Score-weighted histograms of the lattice phase of points ``d`` (N, 2) (pixel offsets
+    from a reference) for lattices of pitch ``lx`` x ``ly`` px turned by each of ``thetas``
+    (A,) radians: (A, PHASE_BINS, PHASE_BINS), summed over 2 x 2 bins (circularly)."""
+    nb = PHASE_BINS
+    ct, st = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    u = (d[None, :, 0] * ct + d[None, :, 1] * st) / lx
+    v = (-d[None, :, 0] * st + d[None, :, 1] * ct) / ly
+    bu = np.floor((u - np.floor(u)) * nb).astype(np.int64) % nb
+    bv = np.floor((v - np.floor(v)) * nb).astype(np.int64) % nb
+    key = (np.arange(len(thetas))[:, None] * nb + bu) * nb + bv
+    Hs = np.bincount(key.ravel(), weights=np.broadcast_to(w, key.shape).ravel(),
+                     minlength=len(thetas) * nb * nb).reshape(len(thetas), nb, nb)
+    Hs = Hs + np.roll(Hs, -1, 1)
+    return Hs + np.roll(Hs, -1, 2)
+
+
+def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
+    """Rotation and phase of the lattice of pitch ``lx`` x ``ly`` px that most candidate
+    peaks lie on.
+
+    For every rotation within ``max_rotation_deg`` of ``rotate_deg`` (pixel system, degrees;
+    a quarter turn folds a square lattice onto itself), the peaks' lattice phases (their
+    lattice coordinates modulo one pitch) are histogrammed, weighted by their scores: on the
+    reseau's rotation its crosses pile up in one cell of an eighth of a pitch, where clutter
+    (scene features, JPEG block corners, grain, noise over flat regions) spreads over all
+    phases. The step of the rotations keeps the farthest peak within a tenth of a pitch;
+    the best one is refined five times finer. The spacing is never searched: it is the
+    certificate's at the given dpi. Returns (theta radians, p0 (2,) a pixel position of a
+    lattice node) or None.
+    """
+    M = len(xy)
+    if M < 3:
+        return None
+    top = np.argsort(-score)[: min(M, 4000)]
+    xy, score = xy[top], score[top]
+    w = np.maximum(score, 0.0)
+    c = np.average(xy, axis=0, weights=w + 1e-12)
+    d = xy - c
+    extent = float(np.percentile(np.hypot(d[:, 0] / lx, d[:, 1] / ly), 95)) + 1.0
+    step = min(0.1 / extent, np.radians(0.5))
+    half = np.radians(min(max_rotation_deg, 44.9 if square else 89.9))
+    n = int(np.ceil(half / step))
+    base = np.radians(rotate_deg)
+    thetas = base + np.arange(-n, n + 1) * step
+    best = None
+    for _ in range(2):
+        out = []
+        chunk = max(1, 2_000_000 // len(d))  # angles at a time: bounded work arrays
+        for k in range(0, len(thetas), chunk):
+            out.append(_phase_histograms(d, w, lx, ly, thetas[k: k + chunk]))
+        Hs = np.concatenate(out)
+        flat = Hs.reshape(len(thetas), -1)
+        a = int(np.argmax(flat.max(1)))
+        best = (thetas[a], Hs[a])
+        thetas = thetas[a] + np.linspace(-step, step, 11)
+        step = step / 5
+    theta, Hb = best
+    bu, bv = np.unravel_index(int(np.argmax(Hb)), Hb.shape)
+    # the phase: circular mean of the peaks in that 2 x 2 cell (bin units)
+    nb = PHASE_BINS
+    ct, st = np.cos(theta), np.sin(theta)
+    u = (d[:, 0] * ct + d[:, 1] * st) / lx
+    v = (-d[:, 0] * st + d[:, 1] * ct) / ly
+    fu, fv = u - np.floor(u), v - np.floor(v)
+    cu, cv = (bu + 1.0) / nb, (bv + 1.0) / nb  # the cell's centre (phase units)
+    du, dv = (fu - cu + 0.5) % 1.0 - 0.5, (fv - cv + 0.5) % 1.0 - 0.5
+    near = (np.abs(du) <= 1.0 / nb) & (np.abs(dv) <= 1.0 / nb)
+    if near.sum() < 2:
+        return None
+    pu = cu + float(np.average(du[near], weights=w[near] + 1e-12))
+    pv = cv + float(np.average(dv[near], weights=w[near] + 1e-12))
+    B = np.array([[lx * ct, -ly * st], [lx * st, ly * ct]])
+    return float(theta), c + B @ np.array([pu, pv])
+
+
 def fit_grid(
     xy: np.ndarray,
     score: np.ndarray,
@@ -209,6 +291,8 @@ def fit_grid(
     max_rotation_deg: float = 20.0,
     frame_evidence=None,
     format_mm: tuple[float, float] | None = None,
+    scale_tol: float | None = None,
+    part: tuple[int, int, int, int] | None = None,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
 
@@ -237,6 +321,14 @@ def fit_grid(
         [0, 1] (:func:`softplot.marks.detect._frame_evidence`).
     max_rotation_deg : float
         Largest residual rotation accepted.
+    scale_tol : float, optional
+        With ``px_per_mm`` given (the dpi known): the lattice's spacing along each axis stays
+        within this fraction of the certificate's pitch times ``px_per_mm``; ``None`` lets
+        the spacing follow the peaks (the dpi being estimated).
+    part : (col0, col1, row0, row1), optional
+        The part of the grid the scan shows, when the user knows it (half-open ranges of
+        columns and rows): the row/col numbering is chosen among the shifts that put the
+        found crosses inside it.
 
     Returns
     -------
@@ -257,52 +349,25 @@ def fit_grid(
         px_per_mm = sp / min(px, py)
     lx, ly = px * px_per_mm, py * px_per_mm
 
-    # rotation from difference vectors between the strongest peaks and their neighbours
-    # (enough neighbours that the lattice ones are among them even with clutter nearby)
-    top = np.argsort(-score)[: min(M, 3 * reseau.count + 20)]
-    xt = xy[top]
-    k = min(25, len(xt))
-    dist, nb = cKDTree(xt).query(xt, k=k)
-    d = (xt[nb[:, 1:]] - xt[:, None, :]).reshape(-1, 2)
-    ln = np.hypot(d[:, 0], d[:, 1])
-    ang = np.degrees(np.arctan2(d[:, 1], d[:, 0])) - rotate_deg
     square = abs(lx - ly) < 0.08 * min(lx, ly)
-    angs = []
-    for L, extra in ((lx, 0.0), (ly, 90.0)):
-        sel = np.abs(ln - L) < 0.12 * L
-        a = ang[sel] + extra
-        angs.append(_fold(a, 90.0 if square else 180.0))
-    a = np.concatenate(angs)
-    a = a[np.abs(a) <= max_rotation_deg]
-    if a.size < 3:
+    found = _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square)
+    if found is None:
         return None
-    # mode of the folded angles, then mean around it
-    hist, edges = np.histogram(a, bins=int(4 * max_rotation_deg) + 1,
-                               range=(-max_rotation_deg - 0.25, max_rotation_deg + 0.25))
-    j = int(np.argmax(hist))
-    centre = 0.5 * (edges[j] + edges[j + 1])
-    near = a[np.abs(a - centre) < 1.0]
-    theta = np.radians(rotate_deg + (np.median(near) if near.size else centre))
-
+    theta, p0_phase = found
     c, s = np.cos(theta), np.sin(theta)
     # lattice basis in pixels: +1 column, +1 row (row goes down the film = film -y)
     B = np.array([[lx * c, -ly * s], [lx * s, ly * c]])
-    # film +y -> pixel direction (s, -c): +1 row = film -y -> (-s, c) * ly
-    Binv = np.linalg.inv(B)
 
-    # phase by voting among the strongest peaks
-    refs = np.argsort(-score)[: min(60, M)]
-    dx = xy[None, :, 0] - xy[refs, 0][:, None]  # (R, M)
-    dy = xy[None, :, 1] - xy[refs, 1][:, None]
-    on = np.ones(dx.shape, bool)
-    for k in range(2):  # lattice coordinate k of every peak seen from every reference
-        fk = Binv[k, 0] * dx + Binv[k, 1] * dy
-        on &= np.abs(fk - np.round(fk)) < 0.15
-    votes = (on * score[None, :]).sum(1)
-    ref = refs[int(np.argmax(votes))]
+    def scale_ok(Bm) -> bool:
+        """The lattice keeps the certificate's spacing (at the given dpi) within
+        ``scale_tol``: a lattice at another spacing is noise, never the reseau."""
+        if scale_tol is None:
+            return True
+        n = np.hypot(Bm[0], Bm[1]) / np.array([lx, ly])
+        return bool(np.all(np.abs(n - 1.0) <= scale_tol))
 
     # affine lattice refinement: p = p0 + B @ (i, j)
-    p0 = xy[ref].copy()
+    p0 = p0_phase.copy()
     Bc = B.copy()
     inl = None
     # tolerances in lattice units: a fifth of a pitch to start, then at most ~0.5 mm (film
@@ -319,6 +384,8 @@ def fit_grid(
             return None
         Mx = np.column_stack([np.ones(inl.sum()), idx[inl]])
         sol = np.linalg.lstsq(Mx, xy[inl], rcond=None)[0]
+        if not scale_ok(sol[1:].T):
+            break
         p0 = sol[0]
         Bc = sol[1:].T
     def best_per_node(sel, key_val):
@@ -349,8 +416,12 @@ def fit_grid(
         Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
         A3 = Mi[tri]  # (T, 3, 3)
         ok = np.abs(np.linalg.det(A3)) > 1e-9
-        if ok.any():
-            sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]])  # (T, 3, 2)
+        sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
+        if scale_tol is not None and len(sol):
+            # exact lattices through three nodes at another spacing are not the reseau
+            nb = np.hypot(sol[:, 1:, 0], sol[:, 1:, 1]) / np.array([lx, ly])
+            sol = sol[np.all(np.abs(nb - 1.0) <= scale_tol, 1)]
+        if len(sol):
             # residuals of every node against every triplet's lattice, one coordinate at a
             # time (two (T, 3) @ (3, n) products)
             res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[ii, 0], sol[:, :, 1] @ Mi.T - xy[ii, 1])
@@ -367,6 +438,8 @@ def fit_grid(
             return None
         Mx = np.column_stack([np.ones(len(cand)), idx[cand]])
         sol = np.linalg.lstsq(Mx, xy[cand], rcond=None)[0]
+        if not scale_ok(sol[1:].T):
+            break
         p0, Bc = sol[0], sol[1:].T
     ci, ri = idx[cand, 0], idx[cand, 1]
 
@@ -460,6 +533,12 @@ def fit_grid(
         Hm = model_fit(film[keep], pix[keep], node[keep])
     cand, node = cand[keep], node[keep]
     res = apply_h(Hm, reseau.film()[node]) - xy[cand]
+    # the score counts what the assigned peaks hold above the clutter's level (the 90th
+    # percentile of the peaks off the lattice): a lattice through clutter scores near 0
+    # however many nodes it fills, the reseau's crosses score by their margin over it
+    off = np.ones(M, bool)
+    off[cand] = False
+    clutter = float(np.percentile(score[off], 90)) if off.sum() >= 10 else 0.0
     J = h_jacobian(Hm, np.zeros((1, 2)))[0]
     scale = float(np.sqrt(abs(np.linalg.det(J))))
     rot = float(np.degrees(np.arctan2(J[1, 0], J[0, 0])))
@@ -470,6 +549,6 @@ def fit_grid(
         px_per_mm=scale,
         rotation_deg=rot,
         rms=float(np.sqrt(np.mean(np.sum(res**2, 1)))) if len(res) else 0.0,
-        score=float(score[cand].sum()),
+        score=float(np.maximum(score[cand] - clutter, 0.0).sum()),
         ambiguous=ambiguous,
     )

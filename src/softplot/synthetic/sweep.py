@@ -225,10 +225,13 @@ def make_case(seed: int, camera: str | None = None) -> Case:
         # (a rotation of up to 5 degrees moves an edge cross by 5 % of the kept span)
         slack = arm_mm / 2 + 4 * blur / ppm + 0.06 * (hi_keep - lo_keep).max()
         ex, ey = fw / 2 + margin, fh / 2 + margin
-        left = max(0.0, ex + lo_keep[0] - slack)
-        right = max(0.0, ex - hi_keep[0] - slack)
-        bottom = max(0.0, ey + lo_keep[1] - slack)
-        top = max(0.0, ey - hi_keep[1] - slack)
+        # where the part reaches the grid's outer crosses the scan keeps the frame's edge
+        # (and the margin beyond it): the edge is what names the rows and columns
+        lo_out, hi_out = lo_keep <= -half_span + 1e-9, hi_keep >= half_span - 1e-9
+        left = 0.0 if lo_out[0] else max(0.0, ex + lo_keep[0] - slack)
+        right = 0.0 if hi_out[0] else max(0.0, ex - hi_keep[0] - slack)
+        bottom = 0.0 if lo_out[1] else max(0.0, ey + lo_keep[1] - slack)
+        top = 0.0 if hi_out[1] else max(0.0, ey - hi_keep[1] - slack)
         crop = (left, top, right, bottom)
         offset = np.zeros(2)  # a part of the frame is off-centre anyway
     crop = _turn_crop(crop, turn)
