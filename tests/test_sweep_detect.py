@@ -56,9 +56,6 @@ FAILING: dict[str, str] = {
     "off-centre": (
         "result on 1/2 scans; measured 92.59 % of visible; RMS 2.09x CRB; normalised-"
         "error RMS 3.72"),
-    "crop": (
-        "result on 1/2 scans; measured 0.00 % of visible; 36 wrong row/col; 28 claims on "
-        "invisible"),
     "half-frame": "result on 0/2 scans; measured 0.00 % of visible",
     "quarter-frame": "result on 0/2 scans; measured 0.00 % of visible",
     "dpi<400": "result on 0/2 scans; measured 0.00 % of visible",

@@ -29,7 +29,7 @@ from softplot.errors import SoftplotError
 @click.option("--scheduler", default=None,
               help="Address of an existing dask scheduler (tcp://host:8786) instead.")
 def command(patterns, camera, out, flatten, method, pixel_size, dpi, polarity, rotate, mirror,
-            scene, quiet, overwrite, workers, scheduler) -> int:
+            grid_part, scene, quiet, overwrite, workers, scheduler) -> int:
     """Process every scan matched by PATTERNS (quoted globs, ** allowed) on dask.distributed."""
     from softplot.pipeline.batch import check_stems, expand, run_batch
     from softplot.pipeline.process import load_results, process_scan, write_report
@@ -38,7 +38,8 @@ def command(patterns, camera, out, flatten, method, pixel_size, dpi, polarity, r
     if not scans:
         raise SoftplotError(f"no scan matches {' '.join(patterns)}")
     check_stems(scans)
-    kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene, mirror)
+    kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene, mirror,
+                     grid_part)
     rep = run_batch(scans, Path(out), process_scan, kw, workers=workers, scheduler=scheduler,
                     progress=not quiet, overwrite=overwrite)
     report = write_report(Path(out) / "report.html", load_results(out, rep.rows),

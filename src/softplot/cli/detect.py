@@ -38,8 +38,8 @@ def _out_path(base: Path | None, stem: str, many: bool, suffix: str) -> Path | N
               help="Write MicMac MeasuresIm-<image>.xml into this folder.")
 @click.option("--overwrite", is_flag=True, help="Replace existing result files.")
 @click.pass_context
-def command(ctx, scans, camera, dpi, polarity, rotate, mirror, scene, json_out, out_dir, plot,
-            micmac, overwrite):
+def command(ctx, scans, camera, dpi, polarity, rotate, mirror, grid_part, scene, json_out,
+            out_dir, plot, micmac, overwrite):
     """Detect and measure the reseau crosses or fiducial marks of SCAN...
 
     Prints one summary line per scan; the result JSON (keys: image, camera, width,
@@ -77,7 +77,7 @@ def command(ctx, scans, camera, dpi, polarity, rotate, mirror, scene, json_out, 
         try:
             sc = load_scan(p)
             det = detect_oriented(sc, cam, mirror=mirror, dpi=dpi, polarity=polarity,
-                                  rotate=float(rotate), scene=scene)
+                                  rotate=float(rotate), scene=scene, grid_part=grid_part)
             doc = det.to_json()
             doc["scan"] = fingerprint(p)  # the scan it was made on, checked where it is used
             doc.update(side_json(cam, mirror))

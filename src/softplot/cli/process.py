@@ -45,7 +45,7 @@ def common_options(f):
 
 
 def task_kwargs(camera, method, flatten, pixel_size, dpi, polarity="auto", rotate="0",
-                scene="auto", mirror=False) -> dict:
+                scene="auto", mirror=False, grid_part=None) -> dict:
     from softplot.camera import load_camera
 
     load_camera(camera)  # bad camera: one line, exit 2, before any work
@@ -53,14 +53,15 @@ def task_kwargs(camera, method, flatten, pixel_size, dpi, polarity="auto", rotat
         raise SoftplotError(f"--pixel-size must be > 0 um, got {pixel_size}")
     return {"camera": camera, "method": method, "flatten": flatten,
             "pixel_size_um": pixel_size, "dpi": dpi, "polarity": polarity,
-            "rotate": float(rotate), "mirror": bool(mirror), "scene": scene}
+            "rotate": float(rotate), "mirror": bool(mirror), "scene": scene,
+            "grid_part": grid_part}
 
 
 @click.command("process")
 @click.argument("scans", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @common_options
 def command(scans, camera, out, flatten, method, pixel_size, dpi, polarity, rotate, mirror,
-            scene, quiet, overwrite) -> int:
+            grid_part, scene, quiet, overwrite) -> int:
     """Detect marks, cross-validate film corrections and check quality of SCANS.
 
     Exit code 0 when every scan is done, 1 when some failed (see summary.csv), 2 on bad
@@ -74,7 +75,8 @@ def command(scans, camera, out, flatten, method, pixel_size, dpi, polarity, rota
         if not p.is_file():
             raise SoftplotError(f"{p}: scan file not found")
     check_stems(paths)
-    kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene, mirror)
+    kw = task_kwargs(camera, method, flatten, pixel_size, dpi, polarity, rotate, scene, mirror,
+                     grid_part)
     rep = process_scans(paths, out, progress=not quiet, overwrite=overwrite, **kw)
     report = write_report(Path(out) / "report.html", load_results(out, rep.rows))
     click.echo(rep.table())

@@ -52,7 +52,7 @@ from softplot.marks.result import Detection
 from softplot.marks.template import MarkShape, cross_shape
 from softplot.runtime import thread_map
 
-__all__ = ["detect", "as_scan", "DetectionError"]
+__all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_grid_part"]
 
 MM_PER_INCH = 25.4
 #: departures from the smooth deformation field below this (film mm) are never outliers on
@@ -102,6 +102,69 @@ def as_scan(scan, dpi: float | None = None):
     if isinstance(scan, (str, Path)):
         return io.load_scan(scan)
     return io.Scan.from_array(np.asarray(scan), dpi=dpi)
+
+
+def parse_grid_part(part, rows: int | None = None, cols: int | None = None):
+    """The part of the reseau a scan shows, as ``(col0, col1, row0, row1)`` (half-open ranges
+    of the certificate's columns and rows; None for None).
+
+    ``part`` is a text ``"cols=A:B,rows=C:D"`` (either may be left out; ``A:B`` are the
+    columns A to B-1, as Python slices; an empty bound is the grid's own), a mapping
+    ``{"cols": (A, B), "rows": (C, D)}`` or such a tuple. With ``rows`` and ``cols`` (the
+    grid's size) the ranges are checked against the grid and open bounds filled in.
+    """
+    if part is None:
+        return None
+    if isinstance(part, str):
+        text = part.replace(" ", "")
+        if not text:
+            raise SoftplotError("--grid-part is empty; give cols=A:B,rows=C:D")
+        d: dict = {}
+        for item in text.split(","):
+            key, eq, rng = item.partition("=")
+            if not eq or key not in ("cols", "rows") or key in d or rng.count(":") != 1:
+                raise SoftplotError(
+                    f"--grid-part {part!r}: expected cols=A:B,rows=C:D (either may be left out), "
+                    f"e.g. cols=0:12")
+            lo, hi = rng.split(":")
+            try:
+                d[key] = (int(lo) if lo else None, int(hi) if hi else None)
+            except ValueError:
+                raise SoftplotError(f"--grid-part {part!r}: {rng!r} is not a range of whole "
+                                    "numbers A:B") from None
+        part = d
+    if isinstance(part, dict):
+        c = part.get("cols") or (None, None)
+        r = part.get("rows") or (None, None)
+        part = (c[0], c[1], r[0], r[1])
+    part = tuple(None if v is None else int(v) for v in part)
+    if len(part) != 4:
+        raise SoftplotError(f"grid part must be (col0, col1, row0, row1), got {part!r}")
+    if rows is None or cols is None:
+        return part
+    c0, c1, r0, r1 = part
+    c0, r0 = c0 if c0 is not None else 0, r0 if r0 is not None else 0
+    c1, r1 = c1 if c1 is not None else cols, r1 if r1 is not None else rows
+    if not (0 <= c0 < c1 <= cols and 0 <= r0 < r1 <= rows):
+        raise SoftplotError(
+            f"--grid-part cols={c0}:{c1},rows={r0}:{r1} is not a part of the {rows}x{cols} "
+            f"grid (columns 0:{cols}, rows 0:{rows})")
+    return (c0, c1, r0, r1)
+
+
+def format_grid_part(part) -> str:
+    """The text ``cols=A:B,rows=C:D`` of a grid part (:func:`parse_grid_part`'s input)."""
+    c0, c1, r0, r1 = parse_grid_part(part)
+
+    def rng(a, b):
+        return f"{'' if a is None else a}:{'' if b is None else b}"
+
+    out = []
+    if (c0, c1) != (None, None):
+        out.append(f"cols={rng(c0, c1)}")
+    if (r0, r1) != (None, None):
+        out.append(f"rows={rng(r0, r1)}")
+    return ",".join(out) or "cols=:"
 
 
 def _polarity_name(sign: int) -> str:
@@ -246,6 +309,15 @@ def _reseau_factor(line_px: float, npix: int) -> int:
     return f
 
 
+def _crosses_in(scan, res, px_per_mm: float) -> int:
+    """The most crosses of the reseau ``res`` a scan can hold at ``px_per_mm`` (either way
+    round): a part of the grid shows fewer than the certificate's."""
+    lx, ly = res.pitch_x * px_per_mm, res.pitch_y * px_per_mm
+    n = max((scan.width / lx + 2) * (scan.height / ly + 2),
+            (scan.height / lx + 2) * (scan.width / ly + 2))
+    return int(min(res.count, n))
+
+
 def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full, part=None):
     """NCC on the overview and grid fit for each admissible polarity."""
     res = camera.reseau
@@ -257,8 +329,7 @@ def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full, p
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
     # the crosses the scan can hold at most (a part of the grid shows fewer than the
     # certificate's): the number of candidates kept and the polarity's bound follow it
-    n_in = min(res.count, int((scan.width / (res.pitch_x * px_per_mm) + 2)
-                              * (scan.height / (res.pitch_y * px_per_mm) + 2)))
+    n_in = _crosses_in(scan, res, px_per_mm)
     signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
     cands = {}
     for sg in signs:
@@ -303,6 +374,7 @@ def detect(
     blur_px: float = 1.0,
     rules: AcceptRules | None = None,
     scene: str = "auto",
+    grid_part=None,
 ) -> Detection:
     """Detect and measure the reseau crosses and fiducial marks of a scan.
 
@@ -330,6 +402,11 @@ def detect(
         (:func:`softplot.marks.measure.scene_background`); "joint" also refitted with the
         scene estimated jointly with the cross (:mod:`softplot.marks.scene_tv`); "auto"
         the joint estimate where the scene has sharp edges near the crosses.
+    grid_part : str, mapping or tuple, optional
+        The part of the reseau the scan shows, when the user knows it (e.g.
+        ``"cols=0:12,rows=0:6"``, :func:`parse_grid_part`): rows and columns are named within
+        it. By default any connected part of at least 3 x 3 crosses is found and named from
+        the format's edges the scan shows.
 
     Returns
     -------
@@ -344,19 +421,24 @@ def detect(
         raise SoftplotError(f"polarity must be auto, positive or negative, got {polarity!r}")
     name = sc.path.name if sc.path is not None else "<array>"
     if cam.reseau is None:
+        if grid_part is not None:
+            raise SoftplotError(f"--grid-part: camera {cam.name} has fiducial marks, no reseau")
         from softplot.marks.fiducial import detect_fiducials
 
         return detect_fiducials(sc, cam, name=name, dpi=dpi, polarity=polarity, rotate=rotate,
                                 blur_px=blur_px, rules=rules)
+    part = parse_grid_part(grid_part, cam.reseau.rows, cam.reseau.cols)
     try:
-        return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0, scene)
+        return _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0, scene,
+                              part)
     except DetectionError as first:
         if polarity == "auto":
             raise
         # a polarity given by the user that the scan contradicts: say so, in one line
         other = "negative" if polarity == "positive" else "positive"
         try:
-            det = _detect_reseau(sc, cam, name, dpi, other, rotate, blur_px, rules, t0, scene)
+            det = _detect_reseau(sc, cam, name, dpi, other, rotate, blur_px, rules, t0, scene,
+                                 part)
         except DetectionError:
             raise first from None
         n = int(det.measured.sum())
@@ -367,7 +449,7 @@ def detect(
 
 
 def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
-                   scene="auto") -> Detection:
+                   scene="auto", part=None) -> Detection:
     res = cam.reseau
     warnings: list[str] = []
     timings: dict = {}
@@ -433,14 +515,14 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     ov = coarse.overview_compact(sc, f)
     _blank_check(ov, name)
     timings["overview"] = time.perf_counter() - t0
-    best = _coarse_grid(sc, ov, f, cam, ppm, polarity, rotate_pix, blur_px)
+    best = _coarse_grid(sc, ov, f, cam, ppm, polarity, rotate_pix, blur_px, part)
     if best is None:
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm ({res.pitch_x * ppm:.0f} px at {dpi:.0f} dpi), "
             "found no regular pattern of cross-like marks")
     g, sign, R, h, pk = best
-    if abs(g.rotation_deg - rotate_pix) > 2.0:
+    if abs((g.rotation_deg - rotate_pix + 180.0) % 360.0 - 180.0) > 2.0:
         # repeat the correlation with the template turned like the grid
         J = grid.h_jacobian(g.H, np.zeros((1, 2)))[0] / ppm
         A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
@@ -449,10 +531,13 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
                                 arm_half=min(0.5 * shape_ov.length, 10.0))
         pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
                                                               0.5 * shape_ov.length)),
-                                threshold=0.2, max_peaks=3 * res.count + 100, sign=sign)
+                                threshold=0.2, max_peaks=3 * _crosses_in(sc, res, ppm) + 100,
+                                sign=sign)
         g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
                            (sc.width, sc.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
-                           margin_px=0.5 * shape.length, max_rotation_deg=3.0)
+                           margin_px=0.5 * shape.length, max_rotation_deg=3.0,
+                           frame_evidence=_frame_evidence(ov, f, ppm),
+                           format_mm=cam.format_mm, scale_tol=SCALE_TOL, part=part)
         if g2 is not None and len(g2.node) >= len(g.node):
             g, R, h, pk = g2, R2, h2, pk2
         del R2

@@ -474,6 +474,16 @@ def fit_grid(
 
     on = box_sums(S)
     unseen = box_sums(U)
+    if part is not None:
+        # the user says which part the scan shows: peaks outside it count against a shift
+        # as peaks off the grid do
+        c0, c1, r0, r1 = part
+        cc = np.zeros((nj + 1, ni + 1))
+        cc[1:, 1:] = S.cumsum(0).cumsum(1)
+        a = np.arange(nj - rows + 1)[:, None]
+        b = np.arange(ni - cols + 1)[None, :]
+        on = (cc[a + r1, b + c1] - cc[a + r0, b + c1] - cc[a + r1, b + c0]
+              + cc[a + r0, b + c0])
     total_sc = sc.sum()
     # grid centre of each shift vs image centre (tie-breaker)
     a = np.arange(nj - rows + 1)[:, None] + j_lo + (rows - 1) / 2.0

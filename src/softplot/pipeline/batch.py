@@ -94,7 +94,7 @@ def expand(patterns: Iterable[str]) -> list[Path]:
 #: the task options that make a result what it is: a rerun resumes only results made with the
 #: same values (recorded in each result as ``settings``)
 SETTINGS_KEYS = ("camera", "method", "flatten", "pixel_size_um", "dpi", "polarity", "rotate",
-                 "mirror", "scene")
+                 "mirror", "scene", "grid_part")
 
 
 def settings_of(kwargs: dict) -> dict:

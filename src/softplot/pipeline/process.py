@@ -86,6 +86,7 @@ def process_scan(
     scene: str = "auto",
     crossval_methods=None,
     mirror: bool = False,
+    grid_part: str | None = None,
 ) -> dict:
     """Detect, correct and check one scan; write ``<out_dir>/<stem>.json`` atomically.
 
@@ -112,6 +113,9 @@ def process_scan(
         The scan is mirrored left-right (through the film base; :mod:`softplot.mirror`).
     scene : {"auto", "opening", "joint"}
         The scene estimate under each cross (see :func:`softplot.marks.detect`).
+    grid_part : str, optional
+        The part of the reseau the scan shows (``cols=A:B,rows=C:D``; see
+        :func:`softplot.marks.detect`).
     crossval_methods : sequence of str, optional
         Methods to cross-validate (default: all of :data:`softplot.correction.METHODS`).
 
@@ -149,7 +153,7 @@ def process_scan(
         raise SoftplotError(f"unknown correction method {method!r} (one of {', '.join(METHODS)})")
     sc = load_scan(scan)
     det = detect_oriented(sc, cam, mirror=mirror, dpi=dpi, polarity=polarity, rotate=rotate,
-                          scene=scene)
+                          scene=scene, grid_part=grid_part)
     dj = det.to_json()
     dj.update(side_json(cam, mirror))
     dj["image"] = str(scan)
@@ -213,7 +217,8 @@ def process_scan(
         "settings": settings_of({"camera": camera, "method": method, "flatten": flatten,
                                  "pixel_size_um": pixel_size_um, "dpi": dpi,
                                  "polarity": polarity, "rotate": float(rotate),
-                                 "mirror": bool(mirror), "scene": scene}),
+                                 "mirror": bool(mirror), "scene": scene,
+                                 "grid_part": grid_part}),
         "status": "done",
         "width": sc.width,
         "height": sc.height,
