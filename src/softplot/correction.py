@@ -81,7 +81,9 @@ def marks_from_detection(camera: Camera | str, detection: dict) -> ReferenceMark
 
     Marks are matched by name (``R<row>C<col>`` or the fiducial's name; for crosses ``row``
     and ``col`` are used when present). Only marks with status "measured" and finite
-    ``x``, ``y`` count as measured; everything else is NaN (missing).
+    ``x``, ``y`` count as measured; everything else is NaN (missing). Each measured mark's
+    covariance (px^2) is its ``cov`` (2 x 2), else ``sigma_x``/``sigma_y``, else ``sigma``
+    (NaN without any): the models weight the marks by it (:func:`_mark_cov`).
     """
     cam = load_camera(camera)
     where = detection.get("_source", "detection")
@@ -90,9 +92,12 @@ def marks_from_detection(camera: Camera | str, detection: dict) -> ReferenceMark
         R = cam.reseau
         grid_film = R.film().reshape(R.rows, R.cols, 2)
         grid_px = np.full((R.rows, R.cols, 2), np.nan)
+        grid_cov = np.full((R.rows, R.cols, 2, 2), np.nan)
     fid_names = tuple(f.name for f in cam.fiducials)
     fid_film = cam.fiducial_film()
     fid_px = np.full((len(fid_names), 2), np.nan)
+    fid_cov = np.full((len(fid_names), 2, 2), np.nan)
+    grid_cov = grid_cov if cam.reseau is not None else None
     n_cross = n_fid = 0
     for i, m in enumerate(detection["marks"]):
         if not isinstance(m, dict):
@@ -130,15 +135,43 @@ def marks_from_detection(camera: Camera | str, detection: dict) -> ReferenceMark
                     f"{grid_px.shape[1]} reseau of camera {cam.name}: wrong camera?"
                 )
             grid_px[r, c] = (x, y)
+            grid_cov[r, c] = _mark_cov(m)
             n_cross += 1
         else:
             name = str(m.get("name", ""))
             if name in fid_names:
                 fid_px[fid_names.index(name)] = (x, y)
+                fid_cov[fid_names.index(name)] = _mark_cov(m)
                 n_fid += 1
     if n_cross == 0 and n_fid == 0:
         raise SoftplotError(f"{where}: no measured marks for camera {cam.name}")
-    return ReferenceMarks(grid_film, grid_px, fid_film, fid_px, fid_names)
+    if grid_cov is not None and not np.isfinite(grid_cov).any():
+        grid_cov = None
+    if not np.isfinite(fid_cov).any():
+        fid_cov = None
+    return ReferenceMarks(grid_film, grid_px, fid_film, fid_px, fid_names, grid_cov, fid_cov)
+
+
+def _mark_cov(m: dict) -> np.ndarray:
+    """A detection mark's pixel covariance (2, 2), px^2: its ``cov``, else the diagonal of
+    ``sigma_x``, ``sigma_y``, else ``sigma`` in both axes; NaN when it has none or it is not
+    a positive definite symmetric matrix."""
+    nan = np.full((2, 2), np.nan)
+    try:
+        if m.get("cov") is not None:
+            C = np.array(m["cov"], float).reshape(2, 2)
+        elif m.get("sigma_x") is not None and m.get("sigma_y") is not None:
+            C = np.diag([float(m["sigma_x"]) ** 2, float(m["sigma_y"]) ** 2])
+        elif m.get("sigma") is not None:
+            C = float(m["sigma"]) ** 2 * np.eye(2)
+        else:
+            return nan
+    except (TypeError, ValueError):
+        return nan
+    if (not np.isfinite(C).all() or abs(C[0, 1] - C[1, 0]) > 1e-9 * abs(C).max()
+            or C[0, 0] <= 0 or np.linalg.det(C) <= 0):
+        return nan
+    return C
 
 
 def detect_marks(scan, camera: Camera | str) -> dict:

@@ -85,6 +85,10 @@ class ReferenceMarks:
         Fiducial marks: film mm and pixel px (NaN where not measured).
     fid_names : tuple of str
         Fiducial names, in the order of the arrays.
+    grid_cov, fid_cov : ndarray (rows, cols, 2, 2) and (F, 2, 2), or None
+        Covariance of each measured pixel position (px^2, pixel x, y; NaN where unknown): a
+        mark measured across a line only (a cross with one bar) has a large variance along
+        it. Every model weights the marks by it (:func:`build_model`).
     """
 
     grid_film: np.ndarray | None = None
@@ -92,6 +96,8 @@ class ReferenceMarks:
     fid_film: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fid_pixel: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fid_names: tuple[str, ...] = ()
+    grid_cov: np.ndarray | None = None
+    fid_cov: np.ndarray | None = None
 
     @property
     def has_grid(self) -> bool:
@@ -117,6 +123,20 @@ class ReferenceMarks:
         ok = np.all(np.isfinite(p), axis=1)
         return f[ok], p[ok], [n for n, o in zip(names, ok, strict=True) if o]
 
+    def covariances(self, names) -> np.ndarray | None:
+        """The pixel covariances (n, 2, 2) of the named marks (NaN where unknown), or None
+        when no mark has one."""
+        table = {}
+        if self.has_grid and self.grid_cov is not None:
+            table.update(zip(self.grid_names(), self.grid_cov.reshape(-1, 2, 2), strict=True))
+        if self.fid_cov is not None:
+            table.update(zip(self.fid_names, self.fid_cov, strict=True))
+        if not table:
+            return None
+        nan = np.full((2, 2), np.nan)
+        C = np.array([table.get(n, nan) for n in names], float).reshape(-1, 2, 2)
+        return C if np.isfinite(C).all((1, 2)).any() else None
+
     def without(self, names) -> "ReferenceMarks":
         """A copy with the named marks treated as not measured."""
         drop = set(names)
@@ -130,7 +150,8 @@ class ReferenceMarks:
         for k, n in enumerate(self.fid_names):
             if n in drop:
                 fp[k] = np.nan
-        return ReferenceMarks(self.grid_film, gp, self.fid_film, fp, self.fid_names)
+        return ReferenceMarks(self.grid_film, gp, self.fid_film, fp, self.fid_names,
+                              self.grid_cov, self.fid_cov)
 
 
 def resolve_method(method: str, marks: ReferenceMarks) -> str:
@@ -337,6 +358,85 @@ def _area(marks: ReferenceMarks):
     return None
 
 
+def _weighted_refit(kind: str, T: PlaneTransform, C: np.ndarray, flip: bool) -> PlaneTransform:
+    """The fit ``T`` (unweighted) again, each mark weighted by the inverse of its error's
+    covariance in the film plane: its measured pixel covariance ``C`` (n, 2, 2) carried by
+    the transform's Jacobian, plus the model's own error (film deformation the transform
+    does not follow: the unweighted fit's squared residuals less the marks' measurement
+    variance, their median, per coordinate, isotropic). A mark without a covariance (NaN) gets the
+    others' median. A mark measured across a line only thus constrains the fit across it.
+    """
+    src = T.src
+    F = np.diag([1.0, -1.0]) if flip else np.eye(2)
+    C = np.array(C, float)
+    known = np.isfinite(C).all((1, 2))
+    if not known.any():
+        return T
+    C[~known] = np.median(C[known], axis=0)
+    Cs = F @ C @ F
+    J = T.jacobian(src)
+    Cf = np.einsum("nij,njk,nlk->nil", J, Cs, J)
+    # the model's error per coordinate: a robust (median) estimate from the unweighted fit's
+    # residuals less each mark's own measurement variance (the median of chi^2_2 / 2 is
+    # ln 2), so that a few marks imprecise along a line do not pass for deformation
+    meas = np.trace(Cf, axis1=1, axis2=2) / 2.0
+    v2 = (np.asarray(T.residuals, float) ** 2).sum(1) / 2.0
+    model = max(float(np.median(v2 - meas)) / np.log(2.0), 0.0)
+    Cf = Cf + model * np.eye(2)
+    scale = float(np.median(np.trace(Cf, axis1=1, axis2=2) / 2.0))
+    if not scale > 0:
+        return T
+    W = np.linalg.inv(Cf / scale)
+    W = 0.5 * (W + W.transpose(0, 2, 1))
+    return fit_transform(kind, src, T.dst, weights=W)
+
+
+def _mesh_positions(marks: ReferenceMarks, kind: str) -> np.ndarray:
+    """The crosses' pixel positions a mesh interpolates: as measured, except where a
+    cross's covariance is far from round (more than :data:`MESH_FUSE_RATIO` between its
+    axes: measured across a line only). There the measurement is combined with the position
+    its neighbours predict (a transform over the surrounding block of measured crosses, as
+    :class:`~softplot.geometry.mesh.MeshModel` fills missing ones; its ``sigma0`` as the
+    prediction's isotropic standard deviation) by their inverse covariances: across the line
+    the measurement, along it the prediction."""
+    gp = np.array(marks.grid_pixel, float)
+    C = marks.grid_cov
+    if C is None:
+        return gp
+    rows, cols = gp.shape[:2]
+    meas = np.isfinite(gp).all(2)
+    lam = np.full((rows, cols, 2), np.nan)
+    ok = meas & np.isfinite(C).all((2, 3))
+    lam[ok] = np.linalg.eigvalsh(C[ok])
+    fuse = ok & (lam[..., 1] > MESH_FUSE_RATIO * np.maximum(lam[..., 0], 1e-30))
+    fit_kind = _FILL_KIND.get(kind, "projective")
+    need = MIN_POINTS[fit_kind]
+    out = gp.copy()
+    for r, c in np.argwhere(fuse):
+        for half in range(1, max(rows, cols)):
+            r0, r1 = max(r - half, 0), min(r + half + 1, rows)
+            c0, c1 = max(c - half, 0), min(c + half + 1, cols)
+            m = meas[r0:r1, c0:c1] & ~fuse[r0:r1, c0:c1]
+            if m.sum() < need + 2:
+                continue
+            try:
+                T = fit_transform(fit_kind, marks.grid_film[r0:r1, c0:c1][m],
+                                  gp[r0:r1, c0:c1][m])
+            except SoftplotError:
+                continue
+            pred = T.forward(marks.grid_film[r, c][None])[0]
+            vp = max(float(T.sigma0) ** 2 if np.isfinite(T.sigma0) else 0.0, 1e-8)
+            Wm = np.linalg.inv(C[r, c])
+            out[r, c] = np.linalg.solve(Wm + np.eye(2) / vp, Wm @ gp[r, c] + pred / vp)
+            break
+    return out
+
+
+#: a cross whose covariance's axes differ by more than this factor (variance) is combined
+#: with its neighbours' prediction before a mesh interpolates it (:func:`_mesh_positions`)
+MESH_FUSE_RATIO = 25.0
+
+
 def build_model(method: str, marks: ReferenceMarks, area=True) -> CorrectionModel:
     """Fit a correction model of ``method`` (see :data:`METHODS`) to the reference marks.
 
@@ -366,7 +466,7 @@ def build_model(method: str, marks: ReferenceMarks, area=True) -> CorrectionMode
                 f"method {method} needs at least {need} measured reseau crosses, got {n} "
                 f"of {rows * cols}"
             )
-        return _MeshCorrection(MeshModel(marks.grid_film, marks.grid_pixel, m), n)
+        return _MeshCorrection(MeshModel(marks.grid_film, _mesh_positions(marks, m), m), n)
     kind = GLOBAL_METHODS[m]
     if m.startswith("raw-plate"):
         f, p, names = _raw_plate_marks(marks)
@@ -389,6 +489,9 @@ def build_model(method: str, marks: ReferenceMarks, area=True) -> CorrectionMode
             Tf = fit_transform(kind, p * np.array([1.0, -1.0]), f)
             if not (T.rms <= Tf.rms):
                 T, flip = Tf, True
+        C = marks.covariances(names)
+        if C is not None and T.redundancy > 0:
+            T = _weighted_refit(kind, T, C, flip)
     except SoftplotError as exc:
         raise SoftplotError(f"method {method}: {exc}") from None
     if area is True:

@@ -318,8 +318,8 @@ class PlaneTransform:
         ``fitted - observed`` at the fitted points, destination units.
     src, dst : ndarray (n, 2)
         The fitted points (source and destination units).
-    weights : ndarray (n,)
-        Point weights used (1 when not given).
+    weights : ndarray (n,) or (n, 2, 2)
+        Point weights used (1 when not given), or the 2 x 2 weight matrices.
     """
 
     kind: str
@@ -542,8 +542,11 @@ def fit_transform(kind: str, src, dst, weights=None) -> PlaneTransform:
     src, dst : array_like (N, 2)
         Corresponding points in the source and destination planes (their own units, e.g.
         pixel and film mm).
-    weights : array_like (N,), optional
-        Point weights (inverse variances, relative); both coordinates of a point share it.
+    weights : array_like (N,) or (N, 2, 2), optional
+        Point weights (inverse variances, relative): one per point, which both coordinates
+        share, or a 2 x 2 weight matrix per point (the inverse of the destination error's
+        covariance, e.g. of a mark measured precisely across a line only; it may be
+        singular: no weight along the line).
 
     Returns
     -------
@@ -569,6 +572,19 @@ def fit_transform(kind: str, src, dst, weights=None) -> PlaneTransform:
         raise SoftplotError(f"{kind} transform needs at least {need} points, got {n}")
     if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
         raise SoftplotError(f"{kind} fit: points must be finite numbers")
+    Wm = None
+    if weights is not None and np.ndim(weights) == 3:
+        Wm = np.asarray(weights, float)
+        if (Wm.shape != (n, 2, 2) or not np.all(np.isfinite(Wm))
+                or not np.allclose(Wm, Wm.transpose(0, 2, 1), rtol=1e-9, atol=0.0)):
+            raise SoftplotError(f"{kind} fit: weights must be {n} symmetric 2 x 2 matrices")
+        lam, V = np.linalg.eigh(Wm)
+        if np.any(lam < -1e-9 * np.maximum(lam.max(1, keepdims=True), 1e-300)):
+            raise SoftplotError(f"{kind} fit: weight matrices must be positive semi-definite")
+        # the whitening W^(1/2) of each point's two rows; the scalar weight of a point (its
+        # mean eigenvalue) only starts the projective fit and counts the points with weight
+        Wh = np.einsum("nij,nj,nkj->nik", V, np.sqrt(np.maximum(lam, 0.0)), V)
+        weights = np.maximum(lam, 0.0).mean(1)
     if weights is None:
         w = np.ones(n)
     else:
@@ -589,20 +605,27 @@ def fit_transform(kind: str, src, dst, weights=None) -> PlaneTransform:
     l = d.reshape(-1)
     sw = np.repeat(np.sqrt(w), 2)
 
+    def whiten(M):
+        """Rows (2N, ...) of the x, y equations of each point, weighted."""
+        if Wm is None:
+            return M * (sw if M.ndim == 1 else sw[:, None])
+        B = M.reshape(n, 2, -1)
+        return np.einsum("nij,njk->nik", Wh, B).reshape(M.shape)
+
     if kind == "projective":
         th = _dlt(s, d, w)
         for _ in range(30):
             f = _proj_eval(th, x, y).reshape(-1)
             A = _proj_jac_params(th, x, y)
-            step, *_ = np.linalg.lstsq(A * sw[:, None], (l - f) * sw, rcond=None)
+            step, *_ = np.linalg.lstsq(whiten(A), whiten(l - f), rcond=None)
             th = th + step
             if np.abs(step).max() < 1e-14:
                 break
         A = _proj_jac_params(th, x, y)
     else:
         A = _design(kind, x, y)
-        th, *_ = np.linalg.lstsq(A * sw[:, None], l * sw, rcond=None)
-    Aw = A * sw[:, None]
+        th, *_ = np.linalg.lstsq(whiten(A), whiten(l), rcond=None)
+    Aw = whiten(A)
     sv = np.linalg.svd(Aw, compute_uv=False)
     if sv[-1] <= 1e-10 * sv[0]:
         raise SoftplotError(
@@ -613,7 +636,10 @@ def fit_transform(kind: str, src, dst, weights=None) -> PlaneTransform:
     fitted = _eval(kind, th, x, y)
     v_c = fitted - d  # conditioned destination units
     r = 2 * n - u
-    vpv = float((w[:, None] * v_c**2).sum()) * dc.scale**2
+    if Wm is None:
+        vpv = float((w[:, None] * v_c**2).sum()) * dc.scale**2
+    else:
+        vpv = float(np.einsum("ni,nij,nj->", v_c, Wm, v_c)) * dc.scale**2
     sigma0 = float(np.sqrt(vpv / r)) if r > 0 else float("nan")
     nat, T = _natural(kind, th, sc, dc)
     # Cov(th) = (sigma0 / scale_dst)^2 Qc: conditioned destination units are natural / scale
@@ -629,7 +655,7 @@ def fit_transform(kind: str, src, dst, weights=None) -> PlaneTransform:
         residuals=v_c * dc.scale,
         src=src.copy(),
         dst=dst.copy(),
-        weights=w,
+        weights=w if Wm is None else Wm,
         src_cond=sc,
         dst_cond=dc,
         cparams=th,
