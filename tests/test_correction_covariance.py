@@ -44,7 +44,7 @@ def _detection(seed, deform, reported="honest", persp=1.0):
     px = _truth(deform, persp)(film)
     lone = rng.choice(len(film), 12, replace=False)
     marks = []
-    for k, (fx, fy) in enumerate(film):
+    for k in range(len(film)):
         r, c = divmod(k, R.cols)
         if k in lone:
             ang = np.radians(0.7) + (np.pi / 2 if rng.uniform() < 0.5 else 0.0)
@@ -106,7 +106,8 @@ def test_meshes_take_a_lone_bar_across_it_only(method):
             fc = FilmCorrection.from_detection(CAM, det, method)
             # points around the lone crosses (within half a pitch)
             rng = np.random.default_rng(200 + seed)
-            pts = (film[lone][:, None, :] + rng.uniform(-2.5, 2.5, (len(lone), 30, 2))).reshape(-1, 2)
+            near = rng.uniform(-2.5, 2.5, (len(lone), 30, 2))
+            pts = (film[lone][:, None, :] + near).reshape(-1, 2)
             err[rep].append(_error_px(fc, pts, deform))
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
     assert rms["honest"] <= 1.1 * rms["truth"], rms
