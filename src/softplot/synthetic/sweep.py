@@ -436,9 +436,8 @@ def score(det, truth: dict, bounds: dict) -> Score:
             if np.isfinite(b):
                 sc.err2.append(float(e @ e) / 2)
                 sc.crb2.append(b * b)
-            sx2, sy2 = C[0, 0], C[1, 1]
-            if sx2 > 0 and sy2 > 0:
-                sc.z2.extend([e[0] ** 2 / sx2, e[1] ** 2 / sy2])
+            if np.isfinite(C).all() and np.linalg.det(C) > 0 and C[0, 0] > 0:
+                sc.z2.append(float(e @ np.linalg.solve(C, e)) / 2)  # e^T C^-1 e / 2
     return sc
 
 
