@@ -51,6 +51,8 @@ class DsmOptions:
     window: int = 9
     max_side: int = 2500
     min_corr: float = 0.7
+    #: semi-global matching runs at half the pixel when the images are wider than this
+    sgbm_full_side: int = 1600
 
 
 @dataclass
@@ -99,8 +101,8 @@ def _disparity_range(L8, R8, geo):
     f = max(1.0, max(L8.shape) / 1200.0)
     small = [cv2.resize(im, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
              if f > 1 else im for im in (L8, R8)]
-    kl = _sift(small[0], (small[0] > 0).astype(np.uint8) * 255, 4000)
-    kr = _sift(small[1], (small[1] > 0).astype(np.uint8) * 255, 4000)
+    kl = _sift(small[0], (small[0] > 0).astype(np.uint8) * 255, 2500)
+    kr = _sift(small[1], (small[1] > 0).astype(np.uint8) * 255, 2500)
     i1, i2 = _mutual_ratio(kl[1], kr[1], 0.8)
     if len(i1) < 10:
         raise SoftplotError("dense matching: the normalised images have too little in common "
@@ -133,6 +135,83 @@ def _noise_sigma(img: np.ndarray, valid: np.ndarray) -> float:
     return float(np.sqrt(np.pi / 2) * np.median(v) / 6.0) if v.size else 1.0
 
 
+class _Reduced:
+    """A scan's ScanPhotoMap for the scan reduced ``f`` times (pixel centres:
+    ``reduced = (scan + 0.5) / f - 0.5``)."""
+
+    def __init__(self, m, f: float):
+        from types import SimpleNamespace
+
+        self.m, self.f = m, float(f)
+        self.correction = m.correction
+        self.frame = SimpleNamespace(pixel_mm=m.frame.pixel_mm * self.f)
+
+    def pixel_to_photo(self, xy):
+        return self.m.pixel_to_photo((np.asarray(xy, float) + 0.5) * self.f - 0.5)
+
+    def photo_to_pixel(self, xy):
+        return (self.m.photo_to_pixel(xy) + 0.5) / self.f - 0.5
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    """One grey channel (uint8, uint16 or float32), the scan itself when it is one."""
+    a = np.asarray(img)
+    if a.ndim == 3:
+        a = a[..., :3].mean(axis=2).astype(np.float32) if a.dtype.kind == "f" else \
+            cv2.cvtColor(np.ascontiguousarray(a[..., :3]), cv2.COLOR_RGB2GRAY)
+    if a.dtype not in (np.uint8, np.uint16, np.float32):
+        a = a.astype(np.float32)
+    return a
+
+
+def _reduce(img: np.ndarray, f: float) -> np.ndarray:
+    """The scan reduced ``f`` times (pixel area averaging); itself when ``f`` <= 1.05."""
+    if f <= 1.05:
+        return img
+    h, w = img.shape[:2]
+    return cv2.resize(img, (max(1, int(round(w / f))), max(1, int(round(h / f)))),
+                      interpolation=cv2.INTER_AREA)
+
+
+def _unit(img: np.ndarray) -> np.ndarray:
+    """float32 grey in [0, 1] of a uint8, uint16 or float image."""
+    if img.dtype.kind == "f":
+        return img.astype(np.float32, copy=False)
+    return img.astype(np.float32) * np.float32(1.0 / np.iinfo(img.dtype).max)
+
+
+def _fill(img: np.ndarray, hole: np.ndarray, r: int = 7) -> np.ndarray:
+    """``img`` with the pixels of ``hole`` replaced by the local mean of the others."""
+    if not hole.any():
+        return img
+    keep = (~hole).astype(np.float32)
+    k = (2 * r + 1, 2 * r + 1)
+    num = cv2.blur(img.astype(np.float32) * keep, k)
+    den = cv2.blur(keep, k)
+    for _ in range(4):  # wide holes: widen the mean until it reaches them
+        if (den[hole] > 1e-3).all():
+            break
+        k = (2 * k[0] + 1, 2 * k[1] + 1)
+        num, den = cv2.blur(img.astype(np.float32) * keep, k), cv2.blur(keep, k)
+    fill = num / np.maximum(den, 1e-6)
+    out = img.copy()
+    out[hole] = fill[hole].astype(img.dtype) if img.dtype.kind == "f" else \
+        np.clip(np.rint(fill[hole]), 0, np.iinfo(img.dtype).max).astype(img.dtype)
+    return out
+
+
+def _stretch(imgs, valid) -> list:
+    """uint8 images for the semi-global matching: one linear stretch (0.5 - 99.5 %)."""
+    v = np.concatenate([im[ok][::7] for im, ok in zip(imgs, valid, strict=True)])
+    lo, hi = (np.percentile(v, [0.5, 99.5]) if v.size else (0.0, 1.0))
+    sc = 255.0 / max(float(hi - lo), 1e-6)
+    return [np.clip((im - lo) * sc, 0, 255).astype(np.uint8) for im in imgs]
+
+
+#: rows of the normalised images refined, checked and intersected at a time
+STRIP_ROWS = 256
+
+
 def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = None,
                   progress=None) -> DSM:
     """DSM of an oriented pair (see the module docstring).
@@ -143,7 +222,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         Oriented pair (object frame).
     maps : (ScanPhotoMap, ScanPhotoMap)
     images : (ndarray, ndarray)
-        Scans (H, W) grey, pixel system.
+        Scans (H, W) grey or (H, W, C), pixel system; never copied at full size as floats.
     gsd : float
         Grid spacing, object m.
     """
@@ -156,17 +235,17 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     geo0 = epipolar_geometry(model, maps, sizes)
     H = float(np.mean([p.X0[2] for p in (model.left, model.right)]))
-    # ground size of a scan pixel at the scene (approximate, from the photo scale)
     scan_px = geo0.pixel_mm
-    # mean object distance: from the base and the sparse parallax after resampling; first
-    # guess from the height of the centres above the lowest object plane is not known, so the
-    # normalised pixel follows from one coarse pass
     say("normalised pair")
-    greys = [np.asarray(im, np.float32) if im.dtype.kind == "f" else
-             im.astype(np.float32) / float(np.iinfo(im.dtype).max) for im in images]
-    greys = [g[..., :3].mean(axis=2) if g.ndim == 3 else g for g in greys]
-    geo_c, imgs_c, _ = resample_pair(model, maps, greys, scan_px * 4, keep_maps=False)
-    L8c, R8c = (_u8(im) for im in imgs_c)
+    greys = [_grey(im) for im in images]
+    # 1. the disparity range from a coarse normalised pair (about 800 px across)
+    extent_mm = max(geo0.cols[0], geo0.rows) * scan_px
+    fc = max(1.0, extent_mm / 800.0 / scan_px)
+    red = [_reduce(g, fc) for g in greys]
+    rmaps = [_Reduced(m, fc) for m in maps]
+    geo_c, imgs_c, _ = resample_pair(model, rmaps, red, scan_px * fc, keep_maps=False)
+    del red
+    L8c, R8c = _stretch([_unit(im) for im in imgs_c], [im > 0 for im in imgs_c])
     dlo, dhi = _disparity_range(L8c, R8c, geo_c)
     # distance from the parallax: lam = B / (xl - xr), xl - xr in mm
     dx_mm = np.array([dlo, dhi]) * geo_c.pixel_mm - (geo_c.col0[0] - geo_c.col0[1]) * \
@@ -174,34 +253,120 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     dist = geo_c.base * geo_c.cn / np.maximum(np.abs(dx_mm), 1e-9)
     ground_per_mm = float(np.min(dist)) / geo_c.cn  # object m per normalised mm (nearest)
     pix = max(scan_px, gsd / opt.samples_per_cell / ground_per_mm)
-    # semi-global matching cost grows with pixels x disparities: at most max_side pixels
-    # across the normalised images (fewer samples per cell on huge scans)
-    extent_mm = max(geo_c.cols[0], geo_c.rows) * geo_c.pixel_mm
+    # the refinement's pixel: at most max_side pixels across the normalised images
     pix = max(pix, extent_mm / opt.max_side)
     f = pix / scan_px
-    if f > 1.2:
-        greys = [cv2.GaussianBlur(g, (0, 0), 0.5 * f) for g in greys]
-    geo, imgs, _ = resample_pair(model, maps, greys, pix, keep_maps=False)
-    # the reseau crosses and fiducials are on the film, not on the ground: mask them out
-    # (painted over for the matching, never valid)
-    marks = [_mark_mask(g.shape, m) for g, m in zip(greys, maps, strict=True)]
-    _, mimgs, _ = resample_pair(model, maps, marks, pix, keep_maps=False)
-    L, R = imgs
-    L8, R8 = _u8(L), _u8(R)
-    mL, mR = ((mi > 0).astype(np.uint8) for mi in mimgs)
-    if mL.any():
-        L8 = cv2.inpaint(L8, mL, 3, cv2.INPAINT_TELEA)
-        L = L8.astype(np.float32) / 255.0 * (mL > 0) + L * (mL == 0)
-    if mR.any():
-        R8 = cv2.inpaint(R8, mR, 3, cv2.INPAINT_TELEA)
-        R = R8.astype(np.float32) / 255.0 * (mR > 0) + R * (mR == 0)
-    # disparity range in this resolution (col_left - col_right)
+    # 2. the normalised pair at that pixel, from scans reduced to about it (pixel area
+    # averaging: no aliasing, no full-size float copy of a scan)
+    fr = max(1.0, f / 1.25) if f > 1.2 else 1.0
+    red = [_reduce(g, fr) for g in greys]
+    rmaps = [_Reduced(m, fr) for m in maps]
+    geo, imgs, _ = resample_pair(model, rmaps, [_unit(r) for r in red] if
+                                 red[0].dtype.kind == "f" else red, pix, keep_maps=False)
+    imgs = [_unit(im) for im in imgs]
+    # the reseau crosses and fiducials are on the film, not on the ground; the unexposed
+    # border outside the format neither: masked (filled for the matching, never valid)
+    marks = [_mark_mask(r.shape, m, fr) for r, m in zip(red, maps, strict=True)]
+    del red
+    _, mimgs, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False)
+    del marks
+    mk = [(mi > 0) for mi in mimgs]
+    fmt = [_format_mask(geo, k, ph, m) > 0 for k, (ph, m) in
+           enumerate(zip((model.left, model.right), maps, strict=True))]
+    L, R = (_fill(im, m) for im, m in zip(imgs, mk, strict=True))
+    del imgs
+    # 3. semi-global matching at half the refinement's pixel (a quarter of the pixels, half
+    # the disparities) when the images are large, both ways, left-right consistency
+    say("semi-global matching")
     scale = geo_c.pixel_mm / geo.pixel_mm
     off_c = geo_c.col0[0] - geo_c.col0[1]
     off = geo.col0[0] - geo.col0[1]
     dmin = (dlo - off_c) * scale + off
     dmax = (dhi - off_c) * scale + off
-    say("semi-global matching")
+    hs = 2 if max(L.shape) > opt.sgbm_full_side else 1
+    Ls, Rs = (cv2.resize(a, None, fx=1 / hs, fy=1 / hs, interpolation=cv2.INTER_AREA)
+              if hs > 1 else a for a in (L, R))
+    Ls8, Rs8 = _stretch([Ls, Rs], [Ls > 0, Rs > 0])
+    D_s, cons_s = _sgbm_lr(Ls8, Rs8, dmin / hs, dmax / hs, opt)
+    del Ls, Rs, Ls8, Rs8
+    if hs > 1:  # back to the refinement's pixels (pixel centres: full = hs (half + 0.5) - 0.5)
+        rows_f = (np.arange(L.shape[0], dtype=np.float32) + 0.5) / hs - 0.5
+        cols_f = (np.arange(L.shape[1], dtype=np.float32) + 0.5) / hs - 0.5
+        mx, my = np.meshgrid(cols_f, rows_f)
+        D0 = cv2.remap(D_s, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) * hs
+        cons = cv2.remap(cons_s.astype(np.uint8), mx, my, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        # a pixel is consistent when its whole neighbourhood of coarse pixels is
+        cons &= cv2.erode(cons.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        del mx, my
+    else:
+        D0, cons = D_s, cons_s
+    del D_s, cons_s
+    # 4. sub-pixel refinement and confidence, strip by strip
+    say("refinement")
+    valid_l = (L > 0) & fmt[0]
+    s_n = _noise_sigma(L * 255.0, cv2.erode(valid_l.astype(np.uint8), np.ones((5, 5))) > 0)
+    win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
+    bad_l = cv2.dilate((mk[0] | ~fmt[0]).astype(np.uint8), win) > 0
+    bad_l |= cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
+    bad_r = cv2.dilate((mk[1] | ~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
+    del mk, fmt, valid_l
+    h = opt.window // 2 + 2
+    Pz, Sz, n_ok = [], [], 0
+    sig_med = []
+    for r0 in range(0, L.shape[0], STRIP_ROWS):
+        r1 = min(L.shape[0], r0 + STRIP_ROWS)
+        a0, a1 = max(0, r0 - h), min(L.shape[0], r1 + h)
+        d0 = np.where(cons[a0:a1], D0[a0:a1], 0.0).astype(np.float32)
+        d, corr, energy = refine_disparity(L[a0:a1] * 255.0, R[a0:a1] * 255.0, d0,
+                                           cons[a0:a1], opt.window)
+        k0, k1 = r0 - a0, r1 - a0
+        d, corr, energy, d0 = d[k0:k1], corr[k0:k1], energy[k0:k1], d0[k0:k1]
+        sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
+        ok = (cons[r0:r1] & (sigma_d <= opt.max_sigma_d) & (corr >= opt.min_corr)
+              & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l[r0:r1])
+        rr, cc = np.nonzero(ok)
+        d = d[rr, cc]
+        cr = np.rint(cc - d).astype(np.int64)
+        inside = (cr >= 0) & (cr < R.shape[1])
+        inside[inside] &= ~bad_r[rr[inside] + r0, cr[inside]]
+        rr, cc, d = rr[inside] + r0, cc[inside], d[inside]
+        n_ok += len(rr)
+        # intersection in the normalised frame
+        xl = (cc - geo.col0[0]) * geo.pixel_mm
+        xr = (cc - d - geo.col0[1]) * geo.pixel_mm
+        yn = (geo.row0 - rr) * geo.pixel_mm
+        P = geo.intersect(xl, xr, yn)
+        lam = geo.base / (xl - xr)
+        sd = sigma_d[rr - r0, cc]
+        # dZ / d(disparity px) = lam^2 / B * pixel_mm * cn (the height part of the ray)
+        sZ = lam**2 / geo.base * geo.pixel_mm * geo.cn * sd
+        good = np.isfinite(P).all(axis=1) & (lam > 0)
+        Pz.append(P[good].astype(np.float32))
+        Sz.append(sZ[good].astype(np.float32))
+        sig_med.append(sd[good][::17])
+    n_cons = int(cons.sum())
+    n_left = int((L > 0).sum())
+    del L, R, D0, cons, bad_l, bad_r
+    say("gridding")
+    P = np.concatenate(Pz) if Pz else np.zeros((0, 3), np.float32)
+    sZ = np.concatenate(Sz) if Sz else np.zeros(0, np.float32)
+    del Pz, Sz
+    dsm = _grid(P, sZ, gsd, opt.min_points)
+    sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
+    dsm.info.update({
+        "pixels_matched": n_cons, "pixels_valid": n_ok, "pixels_left": n_left,
+        "normalised_pixel_mm": geo.pixel_mm, "sgbm_pixel_mm": geo.pixel_mm * hs,
+        "disparity_range_px": [float(dmin), float(dmax)],
+        "noise_grey": s_n, "flying_height_m": H,
+        "sigma_d_px_median": float(np.median(sm)) if sm.size else None,
+    })
+    return dsm
+
+
+def _sgbm_lr(L8, R8, dmin, dmax, opt):
+    """Disparity ``col_left - col_right`` (float32, px) of every left pixel by semi-global
+    matching both ways, and where both ways agree within ``opt.lr_px``."""
     block = opt.block
     m = _sgbm(L8, R8, dmin, dmax, block, opt.uniqueness)
     pad = int(max(0, np.ceil(dmax)) + block)
@@ -225,72 +390,16 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     # right -> left on flipped images: the same disparities (col_left - col_right)
     dr = m.compute(np.ascontiguousarray(Rp[:, ::-1]),
                    np.ascontiguousarray(Lp[:, ::-1])).astype(np.float32)[:, ::-1] / 16.0
-    invalid_l = dl < m.getMinDisparity()
-    invalid_r = dr < m.getMinDisparity()
+    lo = m.getMinDisparity()
+    del Lp, Rp
     rows, cols = np.mgrid[0:dl.shape[0], 0:dl.shape[1]]
     cr = np.rint(cols - dl).astype(np.int64)
     inside = (cr >= 0) & (cr < dr.shape[1])
-    back = np.where(inside, dr[rows, np.clip(cr, 0, dr.shape[1] - 1)], np.nan)
-    consistent = inside & ~invalid_l & (np.abs(back - dl) <= opt.lr_px)
-    consistent &= ~invalid_r[rows, np.clip(cr, 0, dr.shape[1] - 1)]
-    # sub-pixel refinement (dense least-squares matching along the rows) and confidence:
-    # the disparity's standard deviation from the noise and the texture of the window
-    say("refinement")
-    valid_img = Lp > 0
-    Lf = np.zeros(Lp.shape, np.float32)
-    Rf = np.zeros(Rp.shape, np.float32)
-    Lf[:, :L.shape[1]] = L * 255.0
-    Rf[:, sh:sh + R.shape[1]] = R * 255.0
-    s_n = _noise_sigma(Lf, cv2.erode(valid_img.astype(np.uint8), np.ones((5, 5))) > 0)
-    d0 = np.where(consistent, dl, 0.0).astype(np.float32)
-    dl, corr, energy = refine_disparity(Lf, Rf, d0, consistent, opt.window)
-    sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
-    ok = (consistent & (sigma_d <= opt.max_sigma_d) & valid_img & (corr >= opt.min_corr)
-          & (np.abs(dl - d0) <= opt.lr_px))
-    ok &= cv2.erode(valid_img.astype(np.uint8), np.ones((2 * block + 1, 2 * block + 1))) > 0
-    # no window may touch a mark, in the left image or at the matched place in the right
-    win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
-    near_l = np.zeros(Lp.shape, bool)
-    near_l[:, :mL.shape[1]] = cv2.dilate(mL, win) > 0
-    near_r = np.zeros(Rp.shape, bool)
-    near_r[:, sh:sh + mR.shape[1]] = cv2.dilate(mR, win) > 0
-    # nor may it reach outside the format (the unexposed film border is not ground)
-    fmt = [_format_mask(geo, k, ph, m) for k, (ph, m) in
-           enumerate(zip((model.left, model.right), maps, strict=True))]
-    near_l[:, :fmt[0].shape[1]] |= cv2.dilate(1 - fmt[0], win) > 0
-    near_l[:, fmt[0].shape[1]:] = True
-    near_r[:, :sh] = True
-    near_r[:, sh:sh + fmt[1].shape[1]] |= cv2.dilate(1 - fmt[1], win) > 0
-    near_r[:, sh + fmt[1].shape[1]:] = True
-    rr0, cc0 = np.mgrid[0:ok.shape[0], 0:ok.shape[1]]
-    cr0 = np.clip(np.rint(cc0 - dl).astype(np.int64), 0, near_r.shape[1] - 1)
-    ok &= ~near_l & ~near_r[rr0, cr0]
-    ok[:, L8.shape[1]:] = False
-    # intersection: disparity in the padded frame -> normalised x of both images
-    say("intersection")
-    rr, cc = np.nonzero(ok)
-    d = dl[rr, cc]
-    col_r = cc - d - sh
-    xl = (cc - geo.col0[0]) * geo.pixel_mm
-    xr = (col_r - geo.col0[1]) * geo.pixel_mm
-    yn = (geo.row0 - rr) * geo.pixel_mm
-    P = geo.intersect(xl, xr, yn)
-    lam = geo.base / (xl - xr)
-    ray = np.sqrt(xl**2 + yn**2 + geo.cn**2)
-    # dP/d(disparity px) = lam^2 / B * pixel_mm * |ray| ; height part ~ the ray's Z share
-    sZ = lam**2 / geo.base * geo.pixel_mm * ray * sigma_d[rr, cc] * (geo.cn / ray)
-    good = np.isfinite(P).all(axis=1) & (lam > 0)
-    P, sZ = P[good], sZ[good]
-    say("gridding")
-    dsm = _grid(P, sZ, gsd, opt.min_points)
-    dsm.info.update({
-        "pixels_matched": int(consistent.sum()), "pixels_valid": int(ok.sum()),
-        "pixels_left": int((Lp[:, :L8.shape[1]] > 0).sum()),
-        "normalised_pixel_mm": geo.pixel_mm, "disparity_range_px": [float(dmin), float(dmax)],
-        "noise_grey": s_n, "flying_height_m": H,
-        "sigma_d_px_median": float(np.median(sigma_d[ok])) if ok.any() else None,
-    })
-    return dsm
+    crc = np.clip(cr, 0, dr.shape[1] - 1)
+    back = dr[rows, crc]
+    ok = inside & (dl >= lo) & (back >= lo) & (np.abs(back - dl) <= opt.lr_px)
+    w = L8.shape[1]
+    return (dl[:, :w] - sh).astype(np.float32), ok[:, :w] & (L8 > 0)
 
 
 def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3):
@@ -330,15 +439,15 @@ def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3):
     return d, corr, energy
 
 
-def _mark_mask(shape, m) -> np.ndarray:
-    """uint8 mask (255) of the reseau crosses / fiducials of a scan (pixel system)."""
+def _mark_mask(shape, m, f: float = 1.0) -> np.ndarray:
+    """uint8 mask (1) of the reseau crosses / fiducials of a scan reduced ``f`` times."""
     from softplot.matching.ties import mark_pixels
 
-    mask = np.zeros(shape[:2], np.float32)
+    mask = np.zeros(shape[:2], np.uint8)
     mp, rad_mm = mark_pixels(m.correction)
-    r = int(np.ceil(rad_mm / m.frame.pixel_mm)) + 2
-    for x, y in mp:
-        cv2.circle(mask, (int(round(x)), int(round(y))), r, 1.0, -1)
+    r = int(np.ceil(rad_mm / (m.frame.pixel_mm * f))) + 2
+    for x, y in (mp + 0.5) / f - 0.5:
+        cv2.circle(mask, (int(round(x)), int(round(y))), r, 1, -1)
     return mask
 
 
