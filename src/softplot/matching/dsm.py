@@ -257,24 +257,20 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     pix = max(pix, extent_mm / opt.max_side)
     f = pix / scan_px
     # 2. the normalised pair at that pixel, from scans reduced to about it (pixel area
-    # averaging: no aliasing, no full-size float copy of a scan)
+    # averaging: no aliasing, no full-size float copy of a scan); kept in the scans' type
     fr = max(1.0, f / 1.25) if f > 1.2 else 1.0
     red = [_reduce(g, fr) for g in greys]
     rmaps = [_Reduced(m, fr) for m in maps]
-    geo, imgs, _ = resample_pair(model, rmaps, [_unit(r) for r in red] if
-                                 red[0].dtype.kind == "f" else red, pix, keep_maps=False)
-    imgs = [_unit(im) for im in imgs]
+    geo, (L, R), _ = resample_pair(model, rmaps, red, pix, keep_maps=False)
     # the reseau crosses and fiducials are on the film, not on the ground; the unexposed
     # border outside the format neither: masked (filled for the matching, never valid)
     marks = [_mark_mask(r.shape, m, fr) for r, m in zip(red, maps, strict=True)]
     del red
-    _, mimgs, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False)
+    _, mk, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False)
     del marks
-    mk = [(mi > 0) for mi in mimgs]
+    mk = [m > 0 for m in mk]
     fmt = [_format_mask(geo, k, ph, m) > 0 for k, (ph, m) in
            enumerate(zip((model.left, model.right), maps, strict=True))]
-    L, R = (_fill(im, m) for im, m in zip(imgs, mk, strict=True))
-    del imgs
     # 3. semi-global matching at half the refinement's pixel (a quarter of the pixels, half
     # the disparities) when the images are large, both ways, left-right consistency
     say("semi-global matching")
@@ -284,42 +280,60 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     dmin = (dlo - off_c) * scale + off
     dmax = (dhi - off_c) * scale + off
     hs = 2 if max(L.shape) > opt.sgbm_full_side else 1
-    Ls, Rs = (cv2.resize(a, None, fx=1 / hs, fy=1 / hs, interpolation=cv2.INTER_AREA)
-              if hs > 1 else a for a in (L, R))
-    Ls8, Rs8 = _stretch([Ls, Rs], [Ls > 0, Rs > 0])
+    small = []
+    for im, m in zip((L, R), mk, strict=True):
+        a = _unit(_fill_strips(im, m))
+        small.append(cv2.resize(a, None, fx=1 / hs, fy=1 / hs, interpolation=cv2.INTER_AREA)
+                     if hs > 1 else a)
+        del a
+    Ls8, Rs8 = _stretch(small, [a > 0 for a in small])
+    del small
     D_s, cons_s = _sgbm_lr(Ls8, Rs8, dmin / hs, dmax / hs, opt)
-    del Ls, Rs, Ls8, Rs8
+    del Ls8, Rs8
     if hs > 1:  # back to the refinement's pixels (pixel centres: full = hs (half + 0.5) - 0.5)
-        rows_f = (np.arange(L.shape[0], dtype=np.float32) + 0.5) / hs - 0.5
         cols_f = (np.arange(L.shape[1], dtype=np.float32) + 0.5) / hs - 0.5
-        mx, my = np.meshgrid(cols_f, rows_f)
-        D0 = cv2.remap(D_s, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) * hs
-        cons = cv2.remap(cons_s.astype(np.uint8), mx, my, cv2.INTER_NEAREST,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        rows_f = (np.arange(L.shape[0], dtype=np.float32) + 0.5) / hs - 0.5
+        cons = cv2.resize(cons_s.astype(np.uint8), (L.shape[1], L.shape[0]),
+                          interpolation=cv2.INTER_NEAREST)
         # a pixel is consistent when its whole neighbourhood of coarse pixels is
-        cons &= cv2.erode(cons.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-        del mx, my
+        cons = cv2.erode(cons, np.ones((3, 3), np.uint8)) > 0
     else:
-        D0, cons = D_s, cons_s
-    del D_s, cons_s
+        cons = cons_s
     # 4. sub-pixel refinement and confidence, strip by strip
     say("refinement")
     valid_l = (L > 0) & fmt[0]
-    s_n = _noise_sigma(L * 255.0, cv2.erode(valid_l.astype(np.uint8), np.ones((5, 5))) > 0)
     win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
     bad_l = cv2.dilate((mk[0] | ~fmt[0]).astype(np.uint8), win) > 0
     bad_l |= cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
     bad_r = cv2.dilate((mk[1] | ~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
-    del mk, fmt, valid_l
+    del fmt
+    # image noise from a band of at most 1024 rows across the middle
+    b0 = max(0, L.shape[0] // 2 - 512)
+    band = slice(b0, b0 + 1024)
+    s_n = _noise_sigma(_unit(L[band]) * np.float32(255.0),
+                       cv2.erode(valid_l[band].astype(np.uint8), np.ones((5, 5))) > 0)
+    del valid_l
     h = opt.window // 2 + 2
+    hf = FILL_HALO
     Pz, Sz, n_ok = [], [], 0
     sig_med = []
     for r0 in range(0, L.shape[0], STRIP_ROWS):
         r1 = min(L.shape[0], r0 + STRIP_ROWS)
         a0, a1 = max(0, r0 - h), min(L.shape[0], r1 + h)
-        d0 = np.where(cons[a0:a1], D0[a0:a1], 0.0).astype(np.float32)
-        d, corr, energy = refine_disparity(L[a0:a1] * 255.0, R[a0:a1] * 255.0, d0,
-                                           cons[a0:a1], opt.window)
+        f0, f1 = max(0, a0 - hf), min(L.shape[0], a1 + hf)
+        Lf = _unit(_fill(L[f0:f1], mk[0][f0:f1]))[a0 - f0:a1 - f0] * np.float32(255.0)
+        Rf = _unit(_fill(R[f0:f1], mk[1][f0:f1]))[a0 - f0:a1 - f0] * np.float32(255.0)
+        if hs > 1:
+            mxs, mys = np.meshgrid(cols_f, rows_f[a0:a1])
+            D0 = cv2.remap(D_s, mxs, mys, cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_REPLICATE) * np.float32(hs)
+            del mxs, mys
+        else:
+            D0 = D_s[a0:a1]
+        c_s = cons[a0:a1]
+        d0 = np.where(c_s, D0, 0.0).astype(np.float32)
+        d, corr, energy = refine_disparity(Lf, Rf, d0, c_s, opt.window)
+        del Lf, Rf, D0
         k0, k1 = r0 - a0, r1 - a0
         d, corr, energy, d0 = d[k0:k1], corr[k0:k1], energy[k0:k1], d0[k0:k1]
         sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
@@ -346,12 +360,13 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         Sz.append(sZ[good].astype(np.float32))
         sig_med.append(sd[good][::17])
     n_cons = int(cons.sum())
-    n_left = int((L > 0).sum())
-    del L, R, D0, cons, bad_l, bad_r
+    n_left = int(np.count_nonzero(L))
+    del L, R, D_s, cons, bad_l, bad_r, mk
     say("gridding")
     P = np.concatenate(Pz) if Pz else np.zeros((0, 3), np.float32)
+    del Pz
     sZ = np.concatenate(Sz) if Sz else np.zeros(0, np.float32)
-    del Pz, Sz
+    del Sz
     dsm = _grid(P, sZ, gsd, opt.min_points)
     sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
     dsm.info.update({
@@ -362,6 +377,20 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         "sigma_d_px_median": float(np.median(sm)) if sm.size else None,
     })
     return dsm
+
+
+#: rows above and below a strip the filling of the marks looks at
+FILL_HALO = 64
+
+
+def _fill_strips(img, hole, rows: int = 512) -> np.ndarray:
+    """:func:`_fill` strip by strip (a copy of ``img``)."""
+    out = np.empty_like(img)
+    for r0 in range(0, img.shape[0], rows):
+        r1 = min(img.shape[0], r0 + rows)
+        f0, f1 = max(0, r0 - FILL_HALO), min(img.shape[0], r1 + FILL_HALO)
+        out[r0:r1] = _fill(img[f0:f1], hole[f0:f1])[r0 - f0:r1 - f0]
+    return out
 
 
 def _sgbm_lr(L8, R8, dmin, dmax, opt):
@@ -392,11 +421,11 @@ def _sgbm_lr(L8, R8, dmin, dmax, opt):
                    np.ascontiguousarray(Lp[:, ::-1])).astype(np.float32)[:, ::-1] / 16.0
     lo = m.getMinDisparity()
     del Lp, Rp
-    rows, cols = np.mgrid[0:dl.shape[0], 0:dl.shape[1]]
-    cr = np.rint(cols - dl).astype(np.int64)
+    cr = np.rint(np.arange(dl.shape[1], dtype=np.float32)[None, :] - dl).astype(np.int32)
     inside = (cr >= 0) & (cr < dr.shape[1])
-    crc = np.clip(cr, 0, dr.shape[1] - 1)
-    back = dr[rows, crc]
+    np.clip(cr, 0, dr.shape[1] - 1, out=cr)
+    back = np.take_along_axis(dr, cr, axis=1)
+    del cr
     ok = inside & (dl >= lo) & (back >= lo) & (np.abs(back - dl) <= opt.lr_px)
     w = L8.shape[1]
     return (dl[:, :w] - sh).astype(np.float32), ok[:, :w] & (L8 > 0)
@@ -472,55 +501,66 @@ def _u8(img):
 
 
 def _grid(P, sZ, gsd, min_points) -> DSM:
-    """Plane-fit gridding of points P (N, 3) with height precision sZ (N,)."""
+    """Plane-fit gridding of points P (N, 3) with height precision sZ (N,) (float32 kept)."""
     if len(P) == 0:
         raise SoftplotError("dense matching found no valid surface point")
-    X, Y, Z = P.T
+    X, Y = P[:, 0].astype(np.float64), P[:, 1].astype(np.float64)
+    z_ref = float(np.median(P[::97, 2]))
+    Z = (P[:, 2] - np.float32(z_ref)).astype(np.float32)
     x0 = np.floor(X.min() / gsd) * gsd + 0.5 * gsd
     y0 = np.ceil(Y.max() / gsd) * gsd - 0.5 * gsd
     cols = int(np.floor((X.max() - x0) / gsd + 0.5)) + 1
     rows = int(np.floor((y0 - Y.min()) / gsd + 0.5)) + 1
     c = np.clip(np.rint((X - x0) / gsd).astype(np.int64), 0, cols - 1)
     r = np.clip(np.rint((y0 - Y) / gsd).astype(np.int64), 0, rows - 1)
-    idx = r * cols + c
+    idx = (r * cols + c).astype(np.int64)
+    dx = ((X - (x0 + c * gsd)) / gsd).astype(np.float32)
+    dy = ((Y - (y0 - r * gsd)) / gsd).astype(np.float32)
+    del X, Y, c, r
     n = rows * cols
-    dx = (X - (x0 + c * gsd)) / gsd
-    dy = (Y - (y0 - r * gsd)) / gsd
-    # robust centre first: median-free two passes (drop points far from the first plane)
-    w = np.ones(len(P))
+    # robust: two passes, the second without the points far from the first plane
+    w = np.ones(len(Z), np.float32)
     Zc = None
     for _ in range(2):
-        s = {k: np.bincount(idx, weights=w * v, minlength=n) for k, v in
-             (("1", np.ones_like(dx)), ("x", dx), ("y", dy), ("xx", dx * dx),
-              ("xy", dx * dy), ("yy", dy * dy), ("z", Z), ("zx", Z * dx), ("zy", Z * dy))}
-        N = np.stack([np.stack([s["1"], s["x"], s["y"]], -1), np.stack([s["x"], s["xx"], s["xy"]],
-                      -1), np.stack([s["y"], s["xy"], s["yy"]], -1)], -2)
-        b = np.stack([s["z"], s["zx"], s["zy"]], -1)
-        cnt = s["1"]
+        def acc(v, w=w):
+            return np.bincount(idx, weights=w * v, minlength=n)
+
+        cnt = np.bincount(idx, weights=w, minlength=n)
+        sx, sy = acc(dx), acc(dy)
         # a cell needs enough points around its centre (no extrapolation of a plane
         # from a few points at its edge)
         full = float(np.median(cnt[cnt > 0])) if (cnt > 0).any() else 0.0
         with np.errstate(invalid="ignore", divide="ignore"):
-            cx, cy = s["x"] / cnt, s["y"] / cnt
-        use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(cx) <= 0.25)
-               & (np.abs(cy) <= 0.25))
-        sol = np.full((n, 3), np.nan)
-        det = np.linalg.det(N[use])
-        good = np.abs(det) > 1e-6 * np.maximum(cnt[use], 1) ** 3
-        ui = np.flatnonzero(use)[good]
-        sol[ui] = np.linalg.solve(N[ui], b[ui][..., None])[..., 0]
+            use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(sx / cnt) <= 0.25)
+                   & (np.abs(sy / cnt) <= 0.25))
+        ui = np.flatnonzero(use)
+        N = np.empty((len(ui), 3, 3))
+        N[:, 0, 0], N[:, 0, 1], N[:, 0, 2] = cnt[ui], sx[ui], sy[ui]
+        N[:, 1, 1], N[:, 1, 2], N[:, 2, 2] = acc(dx * dx)[ui], acc(dx * dy)[ui], \
+            acc(dy * dy)[ui]
+        N[:, 1, 0], N[:, 2, 0], N[:, 2, 1] = N[:, 0, 1], N[:, 0, 2], N[:, 1, 2]
+        bz = np.stack([acc(Z)[ui], acc(Z * dx)[ui], acc(Z * dy)[ui]], -1)
+        del sx, sy
+        det = np.linalg.det(N)
+        good = np.abs(det) > 1e-6 * np.maximum(cnt[ui], 1) ** 3
+        sol = np.zeros((n, 3), np.float32)
+        sol[:] = np.nan
+        sol[ui[good]] = np.linalg.solve(N[good], bz[good][..., None])[..., 0]
         # cells with too little spread for a plane: their weighted mean
-        flat = np.flatnonzero(use)[~good]
-        sol[flat, 0] = b[flat, 0] / cnt[flat]
+        flat = ui[~good]
+        sol[flat, 0] = bz[~good, 0] / cnt[flat]
         sol[flat, 1:] = 0.0
+        del N, bz, det
         Zc = sol[:, 0]
-        pred = sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy
-        res = Z - pred
-        tol = np.maximum(4.0 * sZ, 3.0 * np.nanmedian(np.abs(res)) * 1.4826)
-        w = (np.abs(res) <= tol).astype(float)
-    var = np.bincount(idx, weights=w * sZ**2, minlength=n) / np.maximum(cnt, 1)
+        res = Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy)
+        del sol
+        tol = np.maximum(4.0 * sZ, 3.0 * np.nanmedian(np.abs(res[::7])) * 1.4826)
+        w = (np.abs(res) <= tol).astype(np.float32)
+        del res, tol
+    var = np.bincount(idx, weights=w * sZ.astype(np.float64) ** 2, minlength=n) / \
+        np.maximum(cnt, 1)
     valid = np.isfinite(Zc) & use
-    Zg = np.where(valid, Zc, np.nan).reshape(rows, cols).astype(np.float32)
+    Zg = np.where(valid, Zc + z_ref, np.nan).reshape(rows, cols).astype(np.float32)
     Sg = np.where(valid, np.sqrt(var), np.nan).reshape(rows, cols).astype(np.float32)
     return DSM(Zg, Sg, float(x0), float(y0), float(gsd),
                {"cells_valid": int(valid.sum()), "cells": int(n)})
