@@ -98,11 +98,11 @@ def _disparity_range(L8, R8, geo):
     """(min, max) disparity col_left - col_right from sparse SIFT matches, px."""
     from softplot.matching.ties import _mutual_ratio, _sift
 
-    f = max(1.0, max(L8.shape) / 1200.0)
+    f = max(1.0, max(L8.shape) / 500.0)  # SIFT doubles its first octave: keep it small
     small = [cv2.resize(im, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
              if f > 1 else im for im in (L8, R8)]
-    kl = _sift(small[0], (small[0] > 0).astype(np.uint8) * 255, 2500)
-    kr = _sift(small[1], (small[1] > 0).astype(np.uint8) * 255, 2500)
+    kl = _sift(small[0], (small[0] > 0).astype(np.uint8) * 255, 1500)
+    kr = _sift(small[1], (small[1] > 0).astype(np.uint8) * 255, 1500)
     i1, i2 = _mutual_ratio(kl[1], kr[1], 0.8)
     if len(i1) < 10:
         raise SoftplotError("dense matching: the normalised images have too little in common "
@@ -209,7 +209,7 @@ def _stretch(imgs, valid) -> list:
 
 
 #: rows of the normalised images refined, checked and intersected at a time
-STRIP_ROWS = 256
+STRIP_ROWS = 128
 
 
 def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = None,
@@ -261,12 +261,12 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     fr = max(1.0, f / 1.25) if f > 1.2 else 1.0
     red = [_reduce(g, fr) for g in greys]
     rmaps = [_Reduced(m, fr) for m in maps]
-    geo, (L, R), _ = resample_pair(model, rmaps, red, pix, keep_maps=False)
+    geo, (L, R), _ = resample_pair(model, rmaps, red, pix, keep_maps=False, tile_rows=256)
     # the reseau crosses and fiducials are on the film, not on the ground; the unexposed
     # border outside the format neither: masked (filled for the matching, never valid)
     marks = [_mark_mask(r.shape, m, fr) for r, m in zip(red, maps, strict=True)]
     del red
-    _, mk, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False)
+    _, mk, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False, tile_rows=256)
     del marks
     mk = [m > 0 for m in mk]
     fmt = [_format_mask(geo, k, ph, m) > 0 for k, (ph, m) in
@@ -280,12 +280,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     dmin = (dlo - off_c) * scale + off
     dmax = (dhi - off_c) * scale + off
     hs = 2 if max(L.shape) > opt.sgbm_full_side else 1
-    small = []
-    for im, m in zip((L, R), mk, strict=True):
-        a = _unit(_fill_strips(im, m))
-        small.append(cv2.resize(a, None, fx=1 / hs, fy=1 / hs, interpolation=cv2.INTER_AREA)
-                     if hs > 1 else a)
-        del a
+    small = [_fill_strips(im, m, hs) for im, m in zip((L, R), mk, strict=True)]
     Ls8, Rs8 = _stretch(small, [a > 0 for a in small])
     del small
     D_s, cons_s = _sgbm_lr(Ls8, Rs8, dmin / hs, dmax / hs, opt)
@@ -363,11 +358,8 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     n_left = int(np.count_nonzero(L))
     del L, R, D_s, cons, bad_l, bad_r, mk
     say("gridding")
-    P = np.concatenate(Pz) if Pz else np.zeros((0, 3), np.float32)
-    del Pz
-    sZ = np.concatenate(Sz) if Sz else np.zeros(0, np.float32)
-    del Sz
-    dsm = _grid(P, sZ, gsd, opt.min_points)
+    dsm = _grid(Pz, Sz, gsd, opt.min_points)
+    del Pz, Sz
     sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
     dsm.info.update({
         "pixels_matched": n_cons, "pixels_valid": n_ok, "pixels_left": n_left,
@@ -383,13 +375,18 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
 FILL_HALO = 64
 
 
-def _fill_strips(img, hole, rows: int = 512) -> np.ndarray:
-    """:func:`_fill` strip by strip (a copy of ``img``)."""
-    out = np.empty_like(img)
-    for r0 in range(0, img.shape[0], rows):
-        r1 = min(img.shape[0], r0 + rows)
-        f0, f1 = max(0, r0 - FILL_HALO), min(img.shape[0], r1 + FILL_HALO)
-        out[r0:r1] = _fill(img[f0:f1], hole[f0:f1])[r0 - f0:r1 - f0]
+def _fill_strips(img, hole, hs: int = 1, rows: int = 256) -> np.ndarray:
+    """:func:`_fill`, as float32 in [0, 1], reduced ``hs`` times (pixel area), strip by
+    strip."""
+    H, W = img.shape[:2]
+    out = np.empty((-(-H // hs), -(-W // hs)), np.float32)
+    for r0 in range(0, H, rows):  # rows is a multiple of hs: the reduction is exact
+        r1 = min(H, r0 + rows)
+        f0, f1 = max(0, r0 - FILL_HALO), min(H, r1 + FILL_HALO)
+        a = _unit(_fill(img[f0:f1], hole[f0:f1])[r0 - f0:r1 - f0])
+        if hs > 1:
+            a = cv2.resize(a, (-(-W // hs), -(-(r1 - r0) // hs)), interpolation=cv2.INTER_AREA)
+        out[r0 // hs:r0 // hs + a.shape[0]] = a
     return out
 
 
@@ -500,68 +497,97 @@ def _u8(img):
     return np.clip(np.asarray(img, np.float32) * 255.0, 0, 255).astype(np.uint8)
 
 
-def _grid(P, sZ, gsd, min_points) -> DSM:
-    """Plane-fit gridding of points P (N, 3) with height precision sZ (N,) (float32 kept)."""
-    if len(P) == 0:
-        raise SoftplotError("dense matching found no valid surface point")
-    X, Y = P[:, 0].astype(np.float64), P[:, 1].astype(np.float64)
-    z_ref = float(np.median(P[::97, 2]))
-    Z = (P[:, 2] - np.float32(z_ref)).astype(np.float32)
-    x0 = np.floor(X.min() / gsd) * gsd + 0.5 * gsd
-    y0 = np.ceil(Y.max() / gsd) * gsd - 0.5 * gsd
-    cols = int(np.floor((X.max() - x0) / gsd + 0.5)) + 1
-    rows = int(np.floor((y0 - Y.min()) / gsd + 0.5)) + 1
-    c = np.clip(np.rint((X - x0) / gsd).astype(np.int64), 0, cols - 1)
-    r = np.clip(np.rint((y0 - Y) / gsd).astype(np.int64), 0, rows - 1)
-    idx = (r * cols + c).astype(np.int64)
-    dx = ((X - (x0 + c * gsd)) / gsd).astype(np.float32)
-    dy = ((Y - (y0 - r * gsd)) / gsd).astype(np.float32)
-    del X, Y, c, r
-    n = rows * cols
-    # robust: two passes, the second without the points far from the first plane
-    w = np.ones(len(Z), np.float32)
-    Zc = None
-    for _ in range(2):
-        def acc(v, w=w):
-            return np.bincount(idx, weights=w * v, minlength=n)
+def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
+    """Plane-fit gridding of points P (N, 3) with height precision sZ (N,), each given
+    whole or as a list of pieces (float32).
 
-        cnt = np.bincount(idx, weights=w, minlength=n)
-        sx, sy = acc(dx), acc(dy)
+    Per cell, a plane ``z = a + b dx + c dy`` (dx, dy: offsets from the cell centre in cells)
+    fitted to its points, twice: the second time without the points farther from the first
+    plane than ``max(4 sZ, 3 x the robust spread)``. Sums accumulate chunk by chunk (the
+    points are read, never copied whole)."""
+    pieces = [(p, z) for p, z in zip(P, sZ, strict=True) if len(p)] if isinstance(P, list) \
+        else [(P, sZ)]
+    if not pieces:
+        raise SoftplotError("dense matching found no valid surface point")
+    N = sum(len(p) for p, _ in pieces)
+    z_ref = float(np.median(np.concatenate([p[::97, 2] for p, _ in pieces])))
+    x0 = np.floor(min(float(p[:, 0].min()) for p, _ in pieces) / gsd) * gsd + 0.5 * gsd
+    y0 = np.ceil(max(float(p[:, 1].max()) for p, _ in pieces) / gsd) * gsd - 0.5 * gsd
+    cols = int(np.floor((max(float(p[:, 0].max()) for p, _ in pieces) - x0) / gsd + 0.5)) + 1
+    rows = int(np.floor((y0 - min(float(p[:, 1].min()) for p, _ in pieces)) / gsd + 0.5)) + 1
+    n = rows * cols
+    # chunks: (piece, slice in it, slice of the whole)
+    chunks, o = [], 0
+    for p, z in pieces:
+        for i in range(0, len(p), chunk):
+            j = min(len(p), i + chunk)
+            chunks.append((p, z, slice(i, j), slice(o + i, o + j)))
+        o += len(p)
+
+    def cells(ch):
+        p, _, sl, _ = ch
+        X = p[sl, 0].astype(np.float64)
+        Y = p[sl, 1].astype(np.float64)
+        c = np.clip(np.rint((X - x0) / gsd).astype(np.int64), 0, cols - 1)
+        r = np.clip(np.rint((y0 - Y) / gsd).astype(np.int64), 0, rows - 1)
+        dx = ((X - (x0 + c * gsd)) / gsd).astype(np.float32)
+        dy = ((Y - (y0 - r * gsd)) / gsd).astype(np.float32)
+        return r * cols + c, dx, dy, p[sl, 2] - np.float32(z_ref)
+
+    keep = np.ones(N, bool)
+    for rnd in range(2):
+        S = np.zeros((10, n), np.float32)
+        for ch in chunks:
+            idx, dx, dy, Z = cells(ch)
+            k = keep[ch[3]]
+            idx, dx, dy, Z = idx[k], dx[k], dy[k], Z[k]
+            S[0] += np.bincount(idx, minlength=n)
+            for j, v in enumerate((dx, dy, dx * dx, dx * dy, dy * dy, Z, Z * dx, Z * dy), 1):
+                S[j] += np.bincount(idx, weights=v, minlength=n)
+            S[9] += np.bincount(idx, weights=ch[1][ch[2]][k].astype(np.float64) ** 2,
+                                minlength=n)
+        cnt = S[0]
         # a cell needs enough points around its centre (no extrapolation of a plane
         # from a few points at its edge)
         full = float(np.median(cnt[cnt > 0])) if (cnt > 0).any() else 0.0
         with np.errstate(invalid="ignore", divide="ignore"):
-            use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(sx / cnt) <= 0.25)
-                   & (np.abs(sy / cnt) <= 0.25))
-        ui = np.flatnonzero(use)
-        N = np.empty((len(ui), 3, 3))
-        N[:, 0, 0], N[:, 0, 1], N[:, 0, 2] = cnt[ui], sx[ui], sy[ui]
-        N[:, 1, 1], N[:, 1, 2], N[:, 2, 2] = acc(dx * dx)[ui], acc(dx * dy)[ui], \
-            acc(dy * dy)[ui]
-        N[:, 1, 0], N[:, 2, 0], N[:, 2, 1] = N[:, 0, 1], N[:, 0, 2], N[:, 1, 2]
-        bz = np.stack([acc(Z)[ui], acc(Z * dx)[ui], acc(Z * dy)[ui]], -1)
-        del sx, sy
-        det = np.linalg.det(N)
-        good = np.abs(det) > 1e-6 * np.maximum(cnt[ui], 1) ** 3
-        sol = np.zeros((n, 3), np.float32)
-        sol[:] = np.nan
-        sol[ui[good]] = np.linalg.solve(N[good], bz[good][..., None])[..., 0]
-        # cells with too little spread for a plane: their weighted mean
-        flat = ui[~good]
-        sol[flat, 0] = bz[~good, 0] / cnt[flat]
-        sol[flat, 1:] = 0.0
-        del N, bz, det
-        Zc = sol[:, 0]
-        res = Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy)
-        del sol
-        tol = np.maximum(4.0 * sZ, 3.0 * np.nanmedian(np.abs(res[::7])) * 1.4826)
-        w = (np.abs(res) <= tol).astype(np.float32)
-        del res, tol
-    var = np.bincount(idx, weights=w * sZ.astype(np.float64) ** 2, minlength=n) / \
-        np.maximum(cnt, 1)
+            use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(S[1] / cnt) <= 0.25)
+                   & (np.abs(S[2] / cnt) <= 0.25))
+        sol = np.full((n, 3), np.nan, np.float32)
+        ui_all = np.flatnonzero(use)
+        for i in range(0, len(ui_all), chunk):
+            ui = ui_all[i:i + chunk]
+            c1, sx, sy = (S[j, ui].astype(np.float64) for j in (0, 1, 2))
+            M = np.empty((len(ui), 3, 3))
+            M[:, 0] = np.stack([c1, sx, sy], -1)
+            M[:, 1] = np.stack([sx, S[3, ui], S[4, ui]], -1)
+            M[:, 2] = np.stack([sy, S[4, ui], S[5, ui]], -1)
+            bz = np.stack([S[6, ui], S[7, ui], S[8, ui]], -1).astype(np.float64)
+            det = np.linalg.det(M)
+            good = np.abs(det) > 1e-6 * np.maximum(c1, 1) ** 3
+            sol[ui[good]] = np.linalg.solve(M[good], bz[good][..., None])[..., 0]
+            # cells with too little spread for a plane: their mean
+            sol[ui[~good], 0] = bz[~good, 0] / c1[~good]
+            sol[ui[~good], 1:] = 0.0
+        if rnd == 1:
+            break
+        # the robust spread of the residuals (a sample), then the points to keep
+        res_s = []
+        for ch in chunks:
+            idx, dx, dy, Z = cells(ch)
+            res_s.append(np.abs(Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy))[::7])
+        spread = 3.0 * 1.4826 * float(np.nanmedian(np.concatenate(res_s)))
+        del res_s
+        for ch in chunks:
+            idx, dx, dy, Z = cells(ch)
+            res = np.abs(Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy))
+            keep[ch[3]] = res <= np.maximum(4.0 * ch[1][ch[2]], spread)
+    Zc = sol[:, 0]
     valid = np.isfinite(Zc) & use
-    Zg = np.where(valid, Zc + z_ref, np.nan).reshape(rows, cols).astype(np.float32)
-    Sg = np.where(valid, np.sqrt(var), np.nan).reshape(rows, cols).astype(np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sig = np.sqrt(S[9] / np.maximum(S[0], 1))
+    Zg = np.where(valid, Zc + np.float32(z_ref), np.nan).reshape(rows, cols).astype(np.float32)
+    Sg = np.where(valid, sig, np.nan).reshape(rows, cols).astype(np.float32)
     return DSM(Zg, Sg, float(x0), float(y0), float(gsd),
                {"cells_valid": int(valid.sum()), "cells": int(n)})
 
