@@ -512,22 +512,23 @@ def _correlated_cov(h, r, w, valid, X, Y, s0sq, blur):
         return g.reshape(n, *shp)
 
     grids = np.stack([grid(R), grid(vf), grid(h[:, 0]), grid(h[:, 1])], 1)  # (N, 4, h, w)
-    F = fft.rfft2(grids, workers=-1)
-    conj = np.conj(F)
-
-    def corr(a, b):
-        """Sum_i a_i b_{i+lag} at lags -K..K (rows, cols), (N, 2K+1, 2K+1)."""
-        c = fft.irfft2(conj[:, a] * F[:, b], s=shp, workers=-1)
-        c = np.roll(c, (K, K), axis=(1, 2))[:, : 2 * K + 1, : 2 * K + 1]
-        return c
-
-    rr = corr(0, 0)
-    vv = corr(1, 1)
+    # the chunks of marks run on the process's threads already: one FFT thread each
+    F = fft.rfft2(grids, workers=1)
+    del grids
+    pairs = ((0, 0), (1, 1), (2, 2), (2, 3), (3, 3))
+    prod = np.stack([np.conj(F[:, a]) * F[:, b] for a, b in pairs], 1)
+    del F
+    # Sum_i a_i b_{i+lag} at lags -K..K (rows, cols), (N, 5, 2K+1, 2K+1)
+    cc = fft.irfft2(prod, s=shp, workers=1)
+    del prod
+    ks = np.r_[shp[0] - K : shp[0], 0 : K + 1]
+    ls = np.r_[shp[1] - K : shp[1], 0 : K + 1]
+    cc = cc[:, :, ks][:, :, :, ls].astype(float)
+    rr, vv, kxx, kxy, kyy = (cc[:, j] for j in range(5))
     var0 = rr[:, K, K] / np.maximum(vv[:, K, K], 1.0)
     rho = (rr / np.maximum(vv, 1.0)) / np.maximum(var0, 1e-30)[:, None, None]
     rho = np.where(vv >= 8, rho, 0.0)  # lags with too few pairs carry nothing
     rho[:, K, K] = 1.0
-    kxx, kxy, kyy = corr(2, 2), corr(2, 3), corr(3, 3)
     cxx = (rho * kxx).sum((1, 2))
     cyy = (rho * kyy).sum((1, 2))
     cxy = (rho * kxy).sum((1, 2))  # Sum over +-lag: symmetric (kyx(lag) = kxy(-lag))

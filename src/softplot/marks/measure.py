@@ -346,9 +346,12 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         if keep is not None:
             wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
         # (without fit_shape the fitted affine is A0's)
+        # every refitted cross takes the first REFIT_ALL_PASSES passes: the covariance of
+        # the earlier ones (costly with the residuals' correlation) is replaced, except where
+        # a later refit is not taken (rare: that cross keeps an independent-pixel one)
         new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=s_med, init_err=0.3,
                   fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
-                  clip=(0.0, 1.0), fit_blur=fit_blur)
+                  clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
         move = np.hypot(*(new.centre - res.centre[idx]).T)
         take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
                 & (move <= REFIT_MAX_MOVE))
