@@ -168,8 +168,9 @@ class GridFit:
     rms : float
         RMS residual (px) of the assigned peaks against ``H``.
     score : float
-        Sum of the assigned peaks' scores above the clutter's (the 90th percentile of the
-        scores of the peaks off the lattice).
+        Sum of the assigned peaks' scores above the clutter's (the median of the scores of
+        the peaks off the lattice), in units of the clutter's spread (its 90th percentile
+        less its median, at least 0.05).
     ambiguous : bool
         Other row/col shifts fit the crosses and the format's edges as well (a strip through
         the grid): the one nearest the scan's centre was taken.
@@ -543,14 +544,17 @@ def fit_grid(
         Hm = model_fit(film[keep], pix[keep], node[keep])
     cand, node = cand[keep], node[keep]
     res = apply_h(Hm, reseau.film()[node]) - xy[cand]
-    # the score counts what the assigned peaks hold above the clutter's level (the 90th
-    # percentile of the peaks off the lattice): a lattice through clutter scores near 0
-    # however many nodes it fills, the reseau's crosses score by their margin over it
+    # the score counts what the assigned peaks hold above the clutter (the peaks off the
+    # lattice: their median, in units of its spread from the median to the 90th percentile):
+    # a lattice through clutter scores near 0 however many nodes it fills (its peaks are
+    # clutter's), the reseau's crosses by their margin over it
     off = np.ones(M, bool)
     off[cand] = False
-    clutter = float(np.percentile(score[off], 90)) if off.sum() >= 10 else 0.0
+    c50, c90 = np.percentile(score[off], [50, 90]) if off.sum() >= 10 else (0.2, 0.3)
     J = h_jacobian(Hm, np.zeros((1, 2)))[0]
     scale = float(np.sqrt(abs(np.linalg.det(J))))
+    if scale_tol is not None and abs(scale / px_per_mm - 1.0) > scale_tol:
+        return None  # the model through the assigned peaks is at another spacing: not the reseau
     rot = float(np.degrees(np.arctan2(J[1, 0], J[0, 0])))
     return GridFit(
         H=Hm,
@@ -559,6 +563,6 @@ def fit_grid(
         px_per_mm=scale,
         rotation_deg=rot,
         rms=float(np.sqrt(np.mean(np.sum(res**2, 1)))) if len(res) else 0.0,
-        score=float(np.maximum(score[cand] - clutter, 0.0).sum()),
+        score=float(np.sum(score[cand] - c50) / max(c90 - c50, 0.05)),
         ambiguous=ambiguous,
     )
