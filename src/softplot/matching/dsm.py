@@ -51,6 +51,8 @@ class DsmOptions:
     window: int = 9
     max_side: int = 2500
     min_corr: float = 0.7
+    #: least share of a matching window off the marks
+    min_window_share: float = 0.6
     #: semi-global matching runs at half the pixel when the images are wider than this
     sgbm_full_side: int = 1600
 
@@ -297,10 +299,15 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     # 4. sub-pixel refinement and confidence, strip by strip
     say("refinement")
     valid_l = (L > 0) & fmt[0]
+    # the matched pixel itself must miss the marks (windows may reach over them: their
+    # pixels do not count) and its window must stay inside the format
     win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
-    bad_l = cv2.dilate((mk[0] | ~fmt[0]).astype(np.uint8), win) > 0
+    near = np.ones((5, 5), np.uint8)
+    bad_l = cv2.dilate((~fmt[0]).astype(np.uint8), win) > 0
+    bad_l |= cv2.dilate(mk[0].astype(np.uint8), near) > 0
     bad_l |= cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
-    bad_r = cv2.dilate((mk[1] | ~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
+    bad_r = cv2.dilate((~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
+    bad_r |= cv2.dilate(mk[1].astype(np.uint8), near) > 0
     del fmt
     # image noise from a band of at most 1024 rows across the middle
     b0 = max(0, L.shape[0] // 2 - 512)
@@ -327,12 +334,14 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
             D0 = D_s[a0:a1]
         c_s = cons[a0:a1]
         d0 = np.where(c_s, D0, 0.0).astype(np.float32)
-        d, corr, energy = refine_disparity(Lf, Rf, d0, c_s, opt.window)
+        d, corr, energy, share = refine_disparity(
+            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mk[0][a0:a1], wr=1.0 - mk[1][a0:a1])
         del Lf, Rf, D0
         k0, k1 = r0 - a0, r1 - a0
         d, corr, energy, d0 = d[k0:k1], corr[k0:k1], energy[k0:k1], d0[k0:k1]
         sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
         ok = (cons[r0:r1] & (sigma_d <= opt.max_sigma_d) & (corr >= opt.min_corr)
+              & (share[k0:k1] >= opt.min_window_share)
               & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l[r0:r1])
         rr, cc = np.nonzero(ok)
         d = d[rr, cc]
@@ -428,14 +437,18 @@ def _sgbm_lr(L8, R8, dmin, dmax, opt):
     return (dl[:, :w] - sh).astype(np.float32), ok[:, :w] & (L8 > 0)
 
 
-def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3):
+def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3, wl=None,
+                     wr=None):
     """Sub-pixel refinement of a disparity map by dense 1-D least-squares matching.
 
-    For every pixel, Gauss-Newton on the shift that minimises the sum over a ``window``
-    square of ``(L(x) - m_L) - (R(x - d) - m_R)`` (local means removed); the right image is
-    warped by each pixel's own disparity (bicubic). Returns the refined disparity, the
-    correlation coefficient of each window after refinement and the sum of squared
-    gradients of the window (for the precision).
+    For every pixel, Gauss-Newton on the shift that minimises the weighted sum over a
+    ``window`` square of ``((L(x) - m_L) - (R(x - d) - m_R))^2`` (weighted local means
+    removed); the right image is warped by each pixel's own disparity (bicubic). Weights:
+    ``wl`` of the left pixels times ``wr`` of the right pixels they fall on (0 on the marks:
+    a window may reach over a mark, which then does not count). Returns the refined
+    disparity, the correlation coefficient of each window after refinement, the weighted
+    sum of squared gradients of the window (for the precision) and the share of the window
+    that counts.
     """
     L = L.astype(np.float32)
     R = R.astype(np.float32)
@@ -443,26 +456,32 @@ def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3):
     rows, cols = np.mgrid[0:L.shape[0], 0:L.shape[1]].astype(np.float32)
     k = (window, window)
     box = lambda a: cv2.boxFilter(a, -1, k, normalize=True)  # noqa: E731
-    Lc = L - box(L)
     gR = cv2.Sobel(R, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    for _ in range(iterations):
+    one = np.ones_like(L)
+    wl = one if wl is None else wl.astype(np.float32)
+    wr = one if wr is None else wr.astype(np.float32)
+
+    def terms(d):
         mx = cols - d
         Rw = cv2.remap(R, mx, rows, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         g = cv2.remap(gR, mx, rows, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-        Rc = Rw - box(Rw)
-        gc = g - box(g)
-        r = Lc - Rc
-        num = box(r * gc)
-        den = box(gc * gc)
+        w = wl * cv2.remap(wr, mx, rows, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        sw = np.maximum(box(w), 1e-6)
+        Lc = L - box(w * L) / sw
+        Rc = Rw - box(w * Rw) / sw
+        gc = g - box(w * g) / sw
+        return w, sw, Lc, Rc, gc
+
+    for _ in range(iterations):
+        w, sw, Lc, Rc, gc = terms(d)
+        num = box(w * (Lc - Rc) * gc)
+        den = box(w * gc * gc)
         step = np.where(valid, -num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
         d += np.clip(step, -1.0, 1.0)
-    mx = cols - d
-    Rw = cv2.remap(R, mx, rows, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    Rc = Rw - box(Rw)
-    corr = box(Lc * Rc) / np.sqrt(np.maximum(box(Lc * Lc) * box(Rc * Rc), 1e-12))
-    g = cv2.remap(gR, mx, rows, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    energy = box((g - box(g)) ** 2) * (window * window)
-    return d, corr, energy
+    w, sw, Lc, Rc, gc = terms(d)
+    corr = box(w * Lc * Rc) / np.sqrt(np.maximum(box(w * Lc * Lc) * box(w * Rc * Rc), 1e-12))
+    energy = box(w * gc * gc) * (window * window)
+    return d, corr, energy, sw
 
 
 def _mark_mask(shape, m, f: float = 1.0) -> np.ndarray:
