@@ -191,13 +191,12 @@ def scan_maps(geo: EpipolarGeometry, k: int, photo, m, r0: int = 0, r1: int | No
     gy = px[:, 1].reshape(nr, nc).astype(np.float32)
     if step == 1:
         return gx[: r1 - r0, :w].copy(), gy[: r1 - r0, :w].copy()
-    fx = np.broadcast_to((np.arange(w, dtype=np.float32) / step)[None, :], (r1 - r0, w))
-    fy = np.broadcast_to((np.arange(r1 - r0, dtype=np.float32) / step)[:, None], (r1 - r0, w))
-    fx, fy = np.ascontiguousarray(fx), np.ascontiguousarray(fy)
-    # bilinear in float64 precision: remap of the residual from a plane would be finer, but
-    # float32 node values at this size are already at the 1e-3 px level
-    return (cv2.remap(gx, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
-            cv2.remap(gy, fx, fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    # bilinear between the nodes: pixel (col, row) is node (col / step, (row - r0) / step),
+    # one affine warp per map (float32 interpolation, no coordinate arrays)
+    M = np.float32([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    return (cv2.warpAffine(gx, M, (w, r1 - r0), flags=flags, borderMode=cv2.BORDER_REPLICATE),
+            cv2.warpAffine(gy, M, (w, r1 - r0), flags=flags, borderMode=cv2.BORDER_REPLICATE))
 
 
 def resample_pair(model, maps, images, pixel_mm: float | None = None, keep_maps: bool = True,
@@ -222,18 +221,23 @@ def resample_pair(model, maps, images, pixel_mm: float | None = None, keep_maps:
             mx, my = scan_maps(geo, k, photo, m, r0, r1)
             if keep_maps:
                 mx_all[r0:r1], my_all[r0:r1] = mx, my
-            ok = (mx > -1) & (mx < W) & (my > -1) & (my < H)
-            if not ok.any():
+            # the band of scan rows the tile needs (whole rows: no copy of the scan)
+            ylo, yhi = float(my.min()), float(my.max())
+            if yhi <= -1 or ylo >= H:
                 continue
-            x0 = max(int(np.floor(mx[ok].min())) - 2, 0)
-            x1 = min(int(np.ceil(mx[ok].max())) + 3, W)
-            y0 = max(int(np.floor(my[ok].min())) - 2, 0)
-            y1 = min(int(np.ceil(my[ok].max())) + 3, H)
-            src = np.ascontiguousarray(img[y0:y1, x0:x1])
-            out[r0:r1] = cv2.remap(src, mx - np.float32(x0), my - np.float32(y0),
-                                   cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
-                                   borderValue=0)
-            out[r0:r1][~ok] = 0
+            y0 = max(int(np.floor(ylo)) - 2, 0)
+            y1 = min(int(np.ceil(yhi)) + 3, H)
+            if y0:
+                my -= np.float32(y0)
+            out[r0:r1] = cv2.remap(img[y0:y1], mx, my, cv2.INTER_CUBIC,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            if y0:
+                my += np.float32(y0)
+            # outside the scan is 0 (not the cubic's blend with the border)
+            eps = 1e-3
+            inside = cv2.bitwise_and(cv2.inRange(mx, -1 + eps, W - eps),
+                                     cv2.inRange(my, -1 + eps, H - eps))
+            out[r0:r1] = cv2.bitwise_and(out[r0:r1], out[r0:r1], mask=inside)
         outs.append(out)
         kept.append((mx_all, my_all) if keep_maps else None)
     return geo, outs, kept
