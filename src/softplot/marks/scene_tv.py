@@ -95,6 +95,9 @@ def _blur(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
     if r > 4:
         _blur_any(src, dst, tmp, row, k, r, h, w)
         return
+    if r <= 3:  # the common case (edge spread up to 1 px): 7 taps
+        _blur7(src, dst, tmp, row, k, r, h, w)
+        return
     # up to 9 taps (r <= 4, the blurs of real scans): the taps as scalars, zero-padded to 9,
     # each output one expression over the pixels: it vectorises (about twice as fast as the
     # loop over the taps, the same sums)
@@ -134,6 +137,42 @@ def _blur(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
         for j in range(w):
             d[j] = (k0 * r0[j] + k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j]
                     + k5 * r5[j] + k6 * r6[j] + k7 * r7[j] + k8 * r8[j])
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _blur7(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
+    # ``_blur`` for r <= 3: the taps zero-padded to 7
+    z = np.float32(0.0)
+    k1 = k[r - 3] if r >= 3 else z
+    k2 = k[r - 2] if r >= 2 else z
+    k3 = k[r - 1]
+    k4 = k[r]
+    k5 = k[r + 1]
+    k6 = k[r + 2] if r >= 2 else z
+    k7 = k[r + 3] if r >= 3 else z
+    for i in range(h):
+        s = src[i]
+        for j in range(3):
+            row[j] = s[0]
+            row[w + 3 + j] = s[w - 1]
+        for j in range(w):
+            row[3 + j] = s[j]
+        d = tmp[i]
+        for j in range(w):
+            d[j] = (k1 * row[j] + k2 * row[j + 1] + k3 * row[j + 2] + k4 * row[j + 3]
+                    + k5 * row[j + 4] + k6 * row[j + 5] + k7 * row[j + 6])
+    for i in range(h):
+        r1 = tmp[max(i - 3, 0)]
+        r2 = tmp[max(i - 2, 0)]
+        r3 = tmp[max(i - 1, 0)]
+        r4 = tmp[i]
+        r5 = tmp[min(i + 1, h - 1)]
+        r6 = tmp[min(i + 2, h - 1)]
+        r7 = tmp[min(i + 3, h - 1)]
+        d = dst[i]
+        for j in range(w):
+            d[j] = (k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j] + k5 * r5[j]
+                    + k6 * r6[j] + k7 * r7[j])
 
 
 @njit(fastmath=True, cache=True, nogil=True)
