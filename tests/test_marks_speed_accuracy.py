@@ -1,7 +1,8 @@
 """The fast paths of mark detection over busy scenes give what the slower ones gave.
 
 * the compiled joint-scene solve (:mod:`softplot.marks.scene_tv`) at every blur radius (its
-  7- and 9-tap paths for radii up to 3 and 4 px, the general loop beyond) agrees with the NumPy path;
+  7- and 9-tap paths for radii up to 3 and 4 px, the general loop beyond) agrees with the
+  NumPy path;
 * ``scene="auto"`` on busy scenes, which refits with the joint scene only the crosses with a
   scene edge in their footprint, is as accurate as the joint estimate on every cross
   (``scene="joint"``, what ``auto`` did before) while solving the scene under far fewer
