@@ -19,13 +19,14 @@ def test_json_has_the_covariance_and_the_mark_geometry():
     n = 0
     for m in doc["marks"]:
         if m["status"] != "measured":
-            assert m["cov"] is None
+            assert m["cov"] is None and m["arms"] is None
             continue
         c = np.array(m["cov"])
         assert c.shape == (2, 2) and c[0, 1] == c[1, 0]
         assert np.all(np.linalg.eigvalsh(c) > 0)
         assert np.isclose(np.sqrt(c[0, 0]), m["sigma_x"], rtol=1e-3, atol=1e-5)
         assert np.isclose(np.sqrt(c[1, 1]), m["sigma_y"], rtol=1e-3, atol=1e-5)
+        assert m["arms"] == 2  # whole crosses (one bar only: tests/test_marks_onearm.py)
         n += 1
     assert n >= 120
     g = doc["mark_geometry"]
