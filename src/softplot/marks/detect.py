@@ -647,6 +647,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     arms = np.where(np.array(status) == "measured", 2, 0)
     _lone_arms(sc, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit, s0,
                sign, rules, radius_ov * f + 1.0, fitted, _held_blur(fine), fine, ppm)
+    if (arms == 1).any():
+        residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)

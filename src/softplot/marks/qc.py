@@ -77,6 +77,10 @@ def plot_qc(det: Detection, scan, path: str | Path, n_chips: int = 6, dpi: int =
             ax.scatter(pos[m, 0], pos[m, 1], marker=marker, s=28 if status != "missing" else 18,
                        c=colour, label=f"{status} ({int(m.sum())})",
                        facecolors="none" if marker == "o" else None)
+    one = meas & (np.asarray(det.arms) == 1) if det.arms is not None else np.zeros_like(meas)
+    if one.any():  # measured across one bar only: ringed
+        ax.scatter(pos[one, 0], pos[one, 1], marker="s", s=60, facecolors="none",
+                   edgecolors="tab:orange", label=f"one bar only ({int(one.sum())})")
     ok = meas & np.isfinite(mag)
     if ok.any():
         ax.quiver(pos[ok, 0], pos[ok, 1], res[ok, 0] * exag, res[ok, 1] * exag, angles="xy",
