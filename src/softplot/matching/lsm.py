@@ -147,10 +147,11 @@ def match_patches(left: np.ndarray, right: np.ndarray, left_xy, right_xy, affine
         # the grey-value residuals of neighbouring pixels are correlated (the optics' blur,
         # the resampling of the right patch): Cov = s0^2 Q (J' C J) Q with C their
         # correlation (pooled over all patches), not s0^2 Q
+        # (only the shifts' variances: q' J' C J q with q the shift's row of Q)
         side = 2 * half + 1
-        C = _sandwich(J.reshape(n, side, side, 8), res.reshape(n, side, side), active)
-        cov = np.einsum("nij,njk,nkl->nil", Q, C, Q)
-        std = np.sqrt(np.maximum(s02[:, None] * cov[:, [0, 3], [0, 3]], 0.0))
+        var = np.stack([_sandwich(np.einsum("npi,ni->np", J, Q[:, i]).reshape(n, side, side),
+                                  res.reshape(n, side, side), active) for i in (0, 3)], 1)
+        std = np.sqrt(np.maximum(s02[:, None] * var, 0.0))
         Tc = T - T.mean(axis=1, keepdims=True)
         Gc = G - G.mean(axis=1, keepdims=True)
         corr = np.sum(Tc * Gc, axis=1) / np.sqrt(np.sum(Tc * Tc, axis=1) * np.sum(Gc * Gc, axis=1))
@@ -168,11 +169,12 @@ def match_patches(left: np.ndarray, right: np.ndarray, left_xy, right_xy, affine
 MAX_LAG = 3
 
 
-def _sandwich(J, res, use, max_lag: int = MAX_LAG) -> np.ndarray:
-    """``sum_pq J_p rho(p - q) J_q'`` (n, 8, 8) of patches J (n, s, s, 8), residuals
-    res (n, s, s); ``rho`` the residual correlation by pixel lag, pooled over the patches
-    ``use`` (each patch's residuals normalised by its own variance). Lags beyond
-    ``max_lag`` or where the pooled correlation is insignificant count as 0."""
+def _sandwich(t, res, use, max_lag: int = MAX_LAG) -> np.ndarray:
+    """``sum_pq t_p rho(p - q) t_q`` (n,) of patches t (n, s, s) (a parameter's influence
+    field ``J q``), residuals res (n, s, s); ``rho`` the residual correlation by pixel lag,
+    pooled over the patches ``use`` (each patch's residuals normalised by its own
+    variance). Lags beyond ``max_lag`` or where the pooled correlation is insignificant
+    count as 0."""
     n, s = res.shape[:2]
     r = res - res.mean(axis=(1, 2), keepdims=True)
     var = np.mean(r * r, axis=(1, 2))
@@ -180,7 +182,7 @@ def _sandwich(J, res, use, max_lag: int = MAX_LAG) -> np.ndarray:
     if not pick.any():
         pick = var > 0
     rn = r[pick] / np.sqrt(var[pick])[:, None, None]
-    out = np.einsum("nabi,nabj->nij", J, J)  # lag 0 (rho = 1)
+    out = np.sum(t * t, axis=(1, 2))  # lag 0 (rho = 1)
     for dy in range(0, max_lag + 1):
         for dx in range(-max_lag, max_lag + 1):
             if dy == 0 and dx <= 0:
@@ -192,6 +194,5 @@ def _sandwich(J, res, use, max_lag: int = MAX_LAG) -> np.ndarray:
             rho = float(np.mean(a * rn[:, yb, xb])) if a.size else 0.0
             if not abs(rho) > 2.0 / np.sqrt(max(a.size, 1)):
                 continue
-            M = np.einsum("nabi,nabj->nij", J[:, ya, xa], J[:, yb, xb])
-            out += rho * (M + M.transpose(0, 2, 1))
+            out += 2.0 * rho * np.sum(t[:, ya, xa] * t[:, yb, xb], axis=(1, 2))
     return out
