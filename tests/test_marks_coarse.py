@@ -198,3 +198,19 @@ def test_process_and_batch_pass_grid_part_and_record_it(monkeypatch, tmp_path, c
     assert r.exit_code == 0, r.output
     assert seen["grid_part"] == "cols=0:6,rows=2:5"
     assert bat.settings_of(seen)["grid_part"] == "cols=0:6,rows=2:5"
+
+
+@pytest.mark.parametrize("scale", [1.6, 2.0])
+def test_a_larger_centre_cross_is_measured_too(scale):
+    """Crosses of different sizes on one plate (the centre cross ``scale`` times the others):
+    every one measured, the large one as precisely as a cross of its own size allows."""
+    spec = ScanSpec(dpi=1300, centre_scale=scale, scene="texture", crop_mm=(14, 14, 14, 14),
+                    mark_arm_scale=0.64, mark_width_scale=1.8, contrast=0.3)
+    img, truth = render_scan("rollei-6006", spec, 11)
+    det = detect(Scan.from_array(img, dpi=1300), "rollei-6006")
+    right, wrong, claimed, visible = _named(det, truth)
+    assert (wrong, claimed) == (0, 0) and right == visible
+    i = det.name.index("R5C5")
+    t = next(m for m in truth["marks"] if m["name"] == "R5C5")
+    assert det.status[i] == "measured"
+    assert np.hypot(*(det.xy[i] - (t["x"], t["y"]))) < 0.1

@@ -609,6 +609,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     tv = fine.scene_tv
     _shape_from_neighbours(sc, shape, film[idx], c0[idx], pred[idx], fine, s0, init_err, sign,
                            rules, radius_ov * f + 1.0, ppm, scene_tv=tv)
+    _other_sizes(sc, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
+                 radius_ov * f + 1.0, scene_tv=tv)
     timings["lsm"] = time.perf_counter() - t0
 
     xy = np.full((N, 2), np.nan)
@@ -845,6 +847,46 @@ def _shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, 
             fine.cov_white[i] = f2.cov_white[j]
             fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
                 f2.score[j], f2.cnr[j], True, "")
+
+
+def _other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_shift,
+                 scene_tv=0, steps=(0.5, 2.5)):
+    """Measure crosses of another size than the others (a larger centre cross) with their own.
+
+    A cross refused as "wrong size" had its fitted affine scale the mark by ``k`` (the square
+    root of the determinants' ratio, fitted over predicted ``A0``); when ``k`` lies within
+    ``steps`` it is fitted again with the shape scaled by ``k`` (arms and lines) from its
+    fitted centre (else ``c0``) and the predicted affine, and an accepted fit replaces the
+    refusal. Modifies ``fine`` in place."""
+    if fine.A is None:
+        return
+    bad = np.array([not o and r == "wrong size" for o, r in zip(fine.ok, fine.reason,
+                                                                   strict=True)])
+    bad &= np.isfinite(fine.A).all((1, 2))
+    if not bad.any():
+        return
+    k = np.sqrt(np.abs(np.linalg.det(A0[bad])) / np.maximum(np.abs(np.linalg.det(fine.A[bad])),
+                                                              1e-12))
+    idx = np.where(bad)[0][(k >= steps[0]) & (k <= steps[1])]
+    k = k[(k >= steps[0]) & (k <= steps[1])]
+    # one fit per size class (scales rounded to a tenth)
+    for kk in np.unique(np.round(k, 1)):
+        grp = idx[np.round(k, 1) == kk]
+        big = MarkShape("cross", length=shape.length * kk, width=shape.width * kk)
+        start = np.where(np.isfinite(fine.xy[grp]).all(1, keepdims=True), fine.xy[grp], c0[grp])
+        f2 = measure(sc, big, start, A0[grp], s0 * max(kk, 1.0), init_err, sign, rules,
+                     anchor=pred[grp], max_shift=max_shift, scene_tv=scene_tv)
+        for j, i in enumerate(grp):
+            if f2.ok[j]:
+                fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]
+                fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
+                    f2.score[j], f2.cnr[j], True, "")
+                if fine.s is not None and f2.s is not None:
+                    fine.s[i] = f2.s[j]
+                for extra in ("cov_white", "arms"):
+                    a, b = getattr(fine, extra, None), getattr(f2, extra, None)
+                    if a is not None and b is not None:
+                        a[i] = b[j]
 
 
 def _held_blur(fine) -> float | None:
