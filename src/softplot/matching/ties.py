@@ -326,11 +326,15 @@ def _mutual_ratio(d1, d2, ratio):
     # count (FLANN's randomised trees are not)
     fl = cv2.BFMatcher(cv2.NORM_L2)
     f = fl.knnMatch(d1, d2, k=2)
-    b = fl.knnMatch(d2, d1, k=2)
+    # the way back only for the descriptors the way there reached (the same result)
+    tgt = np.unique([m[0].trainIdx for m in f
+                     if len(m) == 2 and m[0].distance < ratio * m[1].distance])
     best_b = np.full(len(d2), -1)
-    for m in b:
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-            best_b[m[0].queryIdx] = m[0].trainIdx
+    if len(tgt):
+        b = fl.knnMatch(np.ascontiguousarray(d2[tgt]), d1, k=2)
+        for m in b:
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                best_b[tgt[m[0].queryIdx]] = m[0].trainIdx
     i1, i2 = [], []
     for m in f:
         if len(m) == 2 and m[0].distance < ratio * m[1].distance:
