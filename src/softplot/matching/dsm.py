@@ -231,7 +231,12 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     from softplot.matching.epipolar import epipolar_geometry, resample_pair
 
     opt = options or DsmOptions()
-    say = progress or (lambda s: None)
+
+    def say(stage):
+        _trim()  # each stage starts without the freed heap of the one before
+        if progress:
+            progress(stage)
+
     if not (gsd > 0 and np.isfinite(gsd)):
         raise SoftplotError(f"--gsd must be a positive number of metres, got {gsd}")
     sizes = [(im.shape[1], im.shape[0]) for im in images]
@@ -378,6 +383,16 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         "sigma_d_px_median": float(np.median(sm)) if sm.size else None,
     })
     return dsm
+
+
+def _trim() -> None:
+    """Return the freed heap to the system (glibc ``malloc_trim``; a no-op elsewhere)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 #: rows above and below a strip the filling of the marks looks at
