@@ -53,7 +53,7 @@ def _pair_task(a: str, b: str, camera: str, det_a, det_b, opts: dict, out: str) 
     except SoftplotError as exc:
         return {"status": "no overlap", "error": str(exc)}
     res.write(out, overwrite=True)
-    return {"status": "done", "n": res.n, "rms_px": res.rms_px,
+    return {"status": "done", "n": res.n, "rms_px": res.rms_px, "std_scale": res.std_scale,
             "sigma0": res.to_json()["sigma0"], "left_px": res.left_px,
             "right_px": res.right_px, "keypoints": res.keypoints}
 
@@ -291,9 +291,11 @@ def match_block(scans, camera: str, out, detections=None, *, options: MatchOptio
     rows = []
     sig_all = []
     # (a match's standard deviation is that of a difference of two image positions: half
-    # its variance to each; the template's position takes the median of its point's)
+    # its variance to each; the template's position takes the median of its point's; all
+    # scaled by the pairs' median variance factor, as softplot match scales a pair's)
+    scale = float(np.median([r["std_scale"] for r in results if r["status"] == "done"]))
     for n, p in enumerate(points):
-        sd = {s: np.maximum(np.array(v[2:4]) / np.sqrt(2.0), opt.sigma_floor_px)
+        sd = {s: np.maximum(np.array(v[2:4]) * scale / np.sqrt(2.0), opt.sigma_floor_px)
               for s, v in p.items() if np.isfinite(v[2])}
         s_med = np.median(np.array(list(sd.values())), axis=0)
         for s, v in sorted(p.items()):
@@ -311,6 +313,7 @@ def match_block(scans, camera: str, out, detections=None, *, options: MatchOptio
     out.mkdir(parents=True, exist_ok=True)
     summary = {
         "photos": names, "scans": [str(s) for s in scans], "camera": cam.name,
+        "std_scale": scale,
         "pairs": [{"left": names[i], "right": names[j], "status": r["status"],
                    **({"ties": r["n"], "rms_px": r["rms_px"], "sigma0": r["sigma0"]}
                       if r["status"] == "done" else {"error": r["error"]})}

@@ -117,6 +117,9 @@ class TieResult:
     #: (n, 2) index of each tie's SIFT keypoint in the left and right overview (the same
     #: keypoints in every pair a scan is part of: they link pairs into multi-ray points)
     keypoints: np.ndarray | None = None
+    #: factor applied to the matches' own standard deviations: the a posteriori sigma0 of
+    #: the relative orientation (over the a priori one) when it is above 1
+    std_scale: float = 1.0
 
     @property
     def n(self) -> int:
@@ -138,6 +141,7 @@ class TieResult:
                            "sigma0_um: photo micrometres",
             "rms_px": self.rms_px,
             "std_px_median": float(np.median(np.hypot(*self.std_px.T))),
+            "std_scale": self.std_scale,
             "gruber": self.gruber,
             "counts": self.counts,
             "relative_orientation": {
@@ -544,6 +548,10 @@ def match_pair(left, right, left_map, right_map, options: MatchOptions | None = 
     py_px = ro.py / pmm
     px_mm = p1[idx, 0] - p2[idx, 0]
     gr = gruber_counts(p1[idx], px_mm, cam.format_mm)
-    return TieResult(names, L[idx], R[idx], S[idx], corr[idx], p1[idx], p2[idx], py_px, ro,
-                     pmm, gr, counts, float(np.median(sig[idx])), kid[idx])
+    # the stated precision is the matches' own, scaled by the orientation's variance factor
+    # when the residual y-parallaxes say it is optimistic
+    s_prior = float(np.median(sig[idx]))
+    scale = max(1.0, float(ro.sigma0) / s_prior)
+    return TieResult(names, L[idx], R[idx], S[idx] * scale, corr[idx], p1[idx], p2[idx], py_px,
+                     ro, pmm, gr, counts, s_prior, kid[idx], scale)
 
