@@ -306,10 +306,15 @@ def test_mouse_keys_and_wheel_drive_the_plotter(env):
     page.keyboard.press("]")
     wait(page, "softplot.state().height === 9")
     n = js(page, "softplot.state().features")
-    page.keyboard.press("r")
-    wait(page, f"softplot.state().features === {n + 1}")
+    page.keyboard.press("r")  # no spot height in contour mode: the height is held, not measured
+    wait(page, "document.getElementById('message').textContent.includes('contour mode')")
+    assert js(page, "softplot.state().features") == n
     page.keyboard.press("m")  # contour -> free
     wait(page, "softplot.state().mode === 'free'")
+    page.keyboard.press("m")  # free -> single: the spot height is measured there
+    wait(page, "softplot.state().mode === 'single'")
+    page.keyboard.press("r")
+    wait(page, f"softplot.state().features === {n + 1}")
     lat = js(page, "softplot.latencies()")
     assert lat and all(x > 0 for x in lat)  # measured inside the page (figures: benchmarks)
 
