@@ -54,6 +54,6 @@ def test_normalised_errors_have_rms_near_one(name):
 def test_independent_pixels_would_understate_grain(monkeypatch):
     """Without the residuals' correlation the same render's covariances are far too small."""
     f = lsm_mod.lsm
-    monkeypatch.setattr(measure_mod, "lsm", lambda *a, **k: f(*a, correlated=False, **k))
+    monkeypatch.setattr(measure_mod, "lsm", lambda *a, **k: f(*a, **{**k, "correlated": False}))
     z = _normalised(CASES["grain, blur 1.5 px"], 5)
     assert z > 2.0
