@@ -289,6 +289,7 @@ def test_fault_slow_replies():
             assert time.monotonic() - t0 >= 0.29
             m.move_to(0.2, 0.1)
             assert m.position() == pytest.approx((0.2, 0.1))
+            time.sleep(0.6)  # the answers to earlier status queries arrive meanwhile
             m.timeout = 0.1
             with pytest.raises(MotorTimeout, match="within 0.1 s"):
                 m.status()
