@@ -69,23 +69,13 @@ def _run_pairs(jobs, workers: int, scheduler: str | None, progress) -> list[dict
             progress(len(out), len(jobs))
         return out
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import as_completed
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise SoftplotError("matching a block needs dask.distributed: "
                             "pip install 'softplot[batch]'") from exc
-    from softplot.pipeline.batch import _ignore_sigint, _quiet_close, _restore_sigint
+    from softplot.pipeline.batch import _quiet_close, start_client
 
-    cluster = None
-    if scheduler:
-        client = Client(scheduler)
-    else:
-        old = _ignore_sigint()
-        try:
-            cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
-                                   processes=True, dashboard_address=":0")
-            client = Client(cluster)
-        finally:
-            _restore_sigint(old)
+    client, cluster = start_client(scheduler, workers)
     try:
         futs = [client.submit(_pair_task, *j, pure=False) for j in jobs]
         index = {f.key: i for i, f in enumerate(futs)}

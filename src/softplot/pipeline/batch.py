@@ -268,7 +268,7 @@ def run_batch(
     lists every scan of this run and of earlier runs found complete.
     """
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import as_completed
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise SoftplotError(
             "softplot batch needs dask.distributed: pip install 'softplot[batch]'"
@@ -291,25 +291,7 @@ def run_batch(
         else:
             todo.append(s)
     if todo:
-        cluster = None
-        if scheduler:
-            client = Client(scheduler)
-        else:
-            # the worker processes ignore Ctrl-C (they inherit SIGINT ignored): the terminal
-            # sends it to the whole process group, and only this process handles it
-            old = _ignore_sigint()
-            try:
-                cluster = LocalCluster(
-                    n_workers=max(1, workers),
-                    threads_per_worker=1,
-                    processes=True,
-                    # a random port: None does not disable the dashboard (dask/distributed#8136)
-                    dashboard_address=":0",
-                    memory_limit=memory_limit,
-                )
-                client = Client(cluster)
-            finally:
-                _restore_sigint(old)
+        client, cluster = start_client(scheduler, workers, memory_limit)
         finished = set()
         try:
             window = 2 * max(1, len(client.scheduler_info().get("workers", {})) or workers)
@@ -368,6 +350,33 @@ def _collect(ac, scan_of, report, out_dir, bar, pending, submit, finished) -> No
         nxt = next(pending, None)
         if nxt is not None:
             submit(nxt)
+
+
+def start_client(scheduler, workers: int, memory_limit="auto"):
+    """``(client, cluster)``: a client of ``scheduler`` (cluster None), or of a new local
+    cluster of ``workers`` single-threaded worker processes.
+
+    The worker processes ignore Ctrl-C (they inherit SIGINT ignored): the terminal sends it to
+    the whole process group, and only this process handles it. Close both with
+    :func:`_quiet_close`.
+    """
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler:
+        return Client(scheduler), None
+    old = _ignore_sigint()
+    try:
+        cluster = LocalCluster(
+            n_workers=max(1, workers),
+            threads_per_worker=1,
+            processes=True,
+            # a random port: None does not disable the dashboard (dask/distributed#8136)
+            dashboard_address=":0",
+            memory_limit=memory_limit,
+        )
+        return Client(cluster), cluster
+    finally:
+        _restore_sigint(old)
 
 
 def _ignore_sigint():
