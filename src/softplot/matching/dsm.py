@@ -211,7 +211,7 @@ def _stretch(imgs, valid) -> list:
 
 
 #: rows of the normalised images refined, checked and intersected at a time
-STRIP_ROWS = 128
+STRIP_ROWS = 64
 
 
 def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = None,
@@ -298,9 +298,10 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         cons = cv2.resize(cons_s.astype(np.uint8), (L.shape[1], L.shape[0]),
                           interpolation=cv2.INTER_NEAREST)
         # a pixel is consistent when its whole neighbourhood of coarse pixels is
-        cons = cv2.erode(cons, np.ones((3, 3), np.uint8)) > 0
+        cons = _Bits(cv2.erode(cons, np.ones((3, 3), np.uint8)) > 0)
     else:
-        cons = cons_s
+        cons = _Bits(cons_s)
+    del cons_s
     # 4. sub-pixel refinement and confidence, strip by strip
     say("refinement")
     valid_l = (L > 0) & fmt[0]
@@ -314,22 +315,27 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     bad_r = cv2.dilate((~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
     bad_r |= cv2.dilate(mk[1].astype(np.uint8), near) > 0
     del fmt
+    # the full-size masks kept through the strips: 8 pixels a byte
+    bad_l, bad_r, mk = _Bits(bad_l), _Bits(bad_r), [_Bits(m) for m in mk]
     # image noise from a band of at most 1024 rows across the middle
     b0 = max(0, L.shape[0] // 2 - 512)
     band = slice(b0, b0 + 1024)
     s_n = _noise_sigma(_unit(L[band]) * np.float32(255.0),
                        cv2.erode(valid_l[band].astype(np.uint8), np.ones((5, 5))) > 0)
     del valid_l
+    _trim()
     h = opt.window // 2 + 2
     hf = FILL_HALO
-    Pz, Sz, n_ok = [], [], 0
+    Pz, Sz, n_ok, n_cons = [], [], 0, 0
     sig_med = []
     for r0 in range(0, L.shape[0], STRIP_ROWS):
         r1 = min(L.shape[0], r0 + STRIP_ROWS)
         a0, a1 = max(0, r0 - h), min(L.shape[0], r1 + h)
         f0, f1 = max(0, a0 - hf), min(L.shape[0], a1 + hf)
-        Lf = _unit(_fill(L[f0:f1], mk[0][f0:f1]))[a0 - f0:a1 - f0] * np.float32(255.0)
-        Rf = _unit(_fill(R[f0:f1], mk[1][f0:f1]))[a0 - f0:a1 - f0] * np.float32(255.0)
+        mkl, mkr = mk[0].rows(f0, f1), mk[1].rows(f0, f1)
+        Lf = _unit(_fill(L[f0:f1], mkl))[a0 - f0:a1 - f0] * np.float32(255.0)
+        Rf = _unit(_fill(R[f0:f1], mkr))[a0 - f0:a1 - f0] * np.float32(255.0)
+        mkl, mkr = mkl[a0 - f0:a1 - f0], mkr[a0 - f0:a1 - f0]
         if hs > 1:
             mxs, mys = np.meshgrid(cols_f, rows_f[a0:a1])
             D0 = cv2.remap(D_s, mxs, mys, cv2.INTER_LINEAR,
@@ -337,22 +343,23 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
             del mxs, mys
         else:
             D0 = D_s[a0:a1]
-        c_s = cons[a0:a1]
+        c_s = cons.rows(a0, a1)
         d0 = np.where(c_s, D0, 0.0).astype(np.float32)
         d, corr, energy, share = refine_disparity(
-            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mk[0][a0:a1], wr=1.0 - mk[1][a0:a1])
-        del Lf, Rf, D0
+            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mkl, wr=1.0 - mkr)
+        del Lf, Rf, D0, mkl, mkr
         k0, k1 = r0 - a0, r1 - a0
+        n_cons += int(np.count_nonzero(c_s[k0:k1]))
         d, corr, energy, d0 = d[k0:k1], corr[k0:k1], energy[k0:k1], d0[k0:k1]
         sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
-        ok = (cons[r0:r1] & (sigma_d <= opt.max_sigma_d) & (corr >= opt.min_corr)
+        ok = (c_s[k0:k1] & (sigma_d <= opt.max_sigma_d) & (corr >= opt.min_corr)
               & (share[k0:k1] >= opt.min_window_share)
-              & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l[r0:r1])
+              & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l.rows(r0, r1))
         rr, cc = np.nonzero(ok)
         d = d[rr, cc]
         cr = np.rint(cc - d).astype(np.int64)
         inside = (cr >= 0) & (cr < R.shape[1])
-        inside[inside] &= ~bad_r[rr[inside] + r0, cr[inside]]
+        inside[inside] &= ~bad_r.rows(r0, r1)[rr[inside], cr[inside]]
         rr, cc, d = rr[inside] + r0, cc[inside], d[inside]
         n_ok += len(rr)
         # intersection in the normalised frame
@@ -367,8 +374,8 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         good = np.isfinite(P).all(axis=1) & (lam > 0)
         Pz.append(P[good].astype(np.float32))
         Sz.append(sZ[good].astype(np.float32))
-        sig_med.append(sd[good][::17])
-    n_cons = int(cons.sum())
+        sig_med.append(sd[good][::17].copy())  # a copy: not a view keeping all of sd
+        _trim()  # the strip's temporaries: no heap left to fragment under the kept points
     n_left = int(np.count_nonzero(L))
     del L, R, D_s, cons, bad_l, bad_r, mk
     say("gridding")
@@ -393,6 +400,18 @@ def _trim() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+class _Bits:
+    """A boolean image kept 8 pixels a byte; rows unpacked on demand."""
+
+    def __init__(self, a: np.ndarray):
+        self.shape = a.shape
+        self.p = np.packbits(a, axis=1)
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        """Rows r0:r1 as a bool array."""
+        return np.unpackbits(self.p[r0:r1], axis=1, count=self.shape[1]).view(bool)
 
 
 #: rows above and below a strip the filling of the marks looks at
@@ -569,8 +588,10 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
         return r * cols + c, dx, dy, p[sl, 2] - np.float32(z_ref)
 
     keep = np.ones(N, bool)
+    S = np.empty((10, n), np.float32)  # per-cell sums, reused by both rounds
+    sol = np.empty((n, 3), np.float32)
     for rnd in range(2):
-        S = np.zeros((10, n), np.float32)
+        S.fill(0.0)
         for ch in chunks:
             idx, dx, dy, Z = cells(ch)
             k = keep[ch[3]]
@@ -587,7 +608,7 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
         with np.errstate(invalid="ignore", divide="ignore"):
             use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(S[1] / cnt) <= 0.25)
                    & (np.abs(S[2] / cnt) <= 0.25))
-        sol = np.full((n, 3), np.nan, np.float32)
+        sol.fill(np.nan)
         ui_all = np.flatnonzero(use)
         for i in range(0, len(ui_all), chunk):
             ui = ui_all[i:i + chunk]
