@@ -275,9 +275,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     del red
     _, mk, _ = resample_pair(model, rmaps, marks, pix, keep_maps=False, tile_rows=256)
     del marks
-    mk = [m > 0 for m in mk]
-    fmt = [_format_mask(geo, k, ph, m) > 0 for k, (ph, m) in
-           enumerate(zip((model.left, model.right), maps, strict=True))]
+    mk = [_Bits(m > 0) for m in mk]  # kept 8 pixels a byte
     # 3. semi-global matching at half the refinement's pixel (a quarter of the pixels, half
     # the disparities) when the images are large, both ways, left-right consistency
     say("semi-global matching")
@@ -304,19 +302,21 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     del cons_s
     # 4. sub-pixel refinement and confidence, strip by strip
     say("refinement")
+    fmt = [_format_mask(geo, k, ph, m) > 0 for k, (ph, m) in
+           enumerate(zip((model.left, model.right), maps, strict=True))]
     valid_l = (L > 0) & fmt[0]
     # the matched pixel itself must miss the marks (windows may reach over them: their
     # pixels do not count) and its window must stay inside the format
     win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
     near = np.ones((5, 5), np.uint8)
     bad_l = cv2.dilate((~fmt[0]).astype(np.uint8), win) > 0
-    bad_l |= cv2.dilate(mk[0].astype(np.uint8), near) > 0
+    bad_l |= cv2.dilate(mk[0].rows(0, L.shape[0]).view(np.uint8), near) > 0
     bad_l |= cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
     bad_r = cv2.dilate((~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
-    bad_r |= cv2.dilate(mk[1].astype(np.uint8), near) > 0
+    bad_r |= cv2.dilate(mk[1].rows(0, R.shape[0]).view(np.uint8), near) > 0
     del fmt
     # the full-size masks kept through the strips: 8 pixels a byte
-    bad_l, bad_r, mk = _Bits(bad_l), _Bits(bad_r), [_Bits(m) for m in mk]
+    bad_l, bad_r = _Bits(bad_l), _Bits(bad_r)
     # image noise from a band of at most 1024 rows across the middle
     b0 = max(0, L.shape[0] // 2 - 512)
     band = slice(b0, b0 + 1024)
@@ -419,14 +419,14 @@ FILL_HALO = 64
 
 
 def _fill_strips(img, hole, hs: int = 1, rows: int = 256) -> np.ndarray:
-    """:func:`_fill`, as float32 in [0, 1], reduced ``hs`` times (pixel area), strip by
-    strip."""
+    """:func:`_fill` (``hole``: a :class:`_Bits`), as float32 in [0, 1], reduced ``hs`` times
+    (pixel area), strip by strip."""
     H, W = img.shape[:2]
     out = np.empty((-(-H // hs), -(-W // hs)), np.float32)
     for r0 in range(0, H, rows):  # rows is a multiple of hs: the reduction is exact
         r1 = min(H, r0 + rows)
         f0, f1 = max(0, r0 - FILL_HALO), min(H, r1 + FILL_HALO)
-        a = _unit(_fill(img[f0:f1], hole[f0:f1])[r0 - f0:r1 - f0])
+        a = _unit(_fill(img[f0:f1], hole.rows(f0, f1))[r0 - f0:r1 - f0])
         if hs > 1:
             a = cv2.resize(a, (-(-W // hs), -(-(r1 - r0) // hs)), interpolation=cv2.INTER_AREA)
         out[r0 // hs:r0 // hs + a.shape[0]] = a
@@ -455,20 +455,29 @@ def _sgbm_lr(L8, R8, dmin, dmax, opt):
         m.setNumDisparities(int(np.ceil((dmax - dmin) / 16.0)) * 16)
     else:
         sh = 0
-    dl = m.compute(Lp, Rp).astype(np.float32) / 16.0
+    dl = m.compute(Lp, Rp).astype(np.float32)
+    dl *= np.float32(1 / 16)
     # right -> left on flipped images: the same disparities (col_left - col_right)
     dr = m.compute(np.ascontiguousarray(Rp[:, ::-1]),
-                   np.ascontiguousarray(Lp[:, ::-1])).astype(np.float32)[:, ::-1] / 16.0
+                   np.ascontiguousarray(Lp[:, ::-1])).astype(np.float32)
+    dr *= np.float32(1 / 16)
+    dr = dr[:, ::-1]
     lo = m.getMinDisparity()
     del Lp, Rp
-    cr = np.rint(np.arange(dl.shape[1], dtype=np.float32)[None, :] - dl).astype(np.int32)
-    inside = (cr >= 0) & (cr < dr.shape[1])
-    np.clip(cr, 0, dr.shape[1] - 1, out=cr)
-    back = np.take_along_axis(dr, cr, axis=1)
-    del cr
-    ok = inside & (dl >= lo) & (back >= lo) & (np.abs(back - dl) <= opt.lr_px)
     w = L8.shape[1]
-    return (dl[:, :w] - sh).astype(np.float32), ok[:, :w] & (L8 > 0)
+    ok = np.empty((dl.shape[0], w), bool)
+    col = np.arange(w, dtype=np.float32)[None, :]
+    for r0 in range(0, dl.shape[0], 256):  # in bands of rows: no full-size temporaries
+        d = dl[r0:r0 + 256, :w]
+        cr = np.rint(col - d).astype(np.int32)
+        inside = (cr >= 0) & (cr < dr.shape[1])
+        np.clip(cr, 0, dr.shape[1] - 1, out=cr)
+        back = np.take_along_axis(dr[r0:r0 + 256], cr, axis=1)
+        ok[r0:r0 + 256] = (inside & (d >= lo) & (back >= lo) & (np.abs(back - d) <= opt.lr_px)
+                           & (L8[r0:r0 + 256] > 0))
+    del dr
+    out = dl[:, :w] - np.float32(sh)
+    return out, ok
 
 
 def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3, wl=None,
@@ -550,14 +559,15 @@ def _u8(img):
     return np.clip(np.asarray(img, np.float32) * 255.0, 0, 255).astype(np.uint8)
 
 
-def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
+def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 17) -> DSM:
     """Plane-fit gridding of points P (N, 3) with height precision sZ (N,), each given
     whole or as a list of pieces (float32).
 
     Per cell, a plane ``z = a + b dx + c dy`` (dx, dy: offsets from the cell centre in cells)
     fitted to its points, twice: the second time without the points farther from the first
     plane than ``max(4 sZ, 3 x the robust spread)``. Sums accumulate chunk by chunk (the
-    points are read, never copied whole)."""
+    points are read, never copied whole), for a band of about ``band_cells`` cells (whole
+    rows of the grid) at a time."""
     pieces = [(p, z) for p, z in zip(P, sZ, strict=True) if len(p)] if isinstance(P, list) \
         else [(P, sZ)]
     if not pieces:
@@ -587,50 +597,69 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
         dy = ((Y - (y0 - r * gsd)) / gsd).astype(np.float32)
         return r * cols + c, dx, dy, p[sl, 2] - np.float32(z_ref)
 
+    band_rows = max(1, band_cells // cols)
     keep = np.ones(N, bool)
-    S = np.empty((10, n), np.float32)  # per-cell sums, reused by both rounds
     sol = np.empty((n, 3), np.float32)
+    use = np.zeros(n, bool)
+    sig = np.full(n, np.nan, np.float32)
     for rnd in range(2):
-        S.fill(0.0)
-        for ch in chunks:
-            idx, dx, dy, Z = cells(ch)
-            k = keep[ch[3]]
-            idx, dx, dy, Z = idx[k], dx[k], dy[k], Z[k]
-            S[0] += np.bincount(idx, minlength=n)
-            for j, v in enumerate((dx, dy, dx * dx, dx * dy, dy * dy, Z, Z * dx, Z * dy), 1):
-                S[j] += np.bincount(idx, weights=v, minlength=n)
-            S[9] += np.bincount(idx, weights=ch[1][ch[2]][k].astype(np.float64) ** 2,
-                                minlength=n)
-        cnt = S[0]
         # a cell needs enough points around its centre (no extrapolation of a plane
-        # from a few points at its edge)
+        # from a few points at its edge): the median count of the cells with points
+        cnt = np.zeros(n, np.int32)
+        for ch in chunks:
+            cnt += np.bincount(cells(ch)[0][keep[ch[3]]], minlength=n).astype(np.int32)
         full = float(np.median(cnt[cnt > 0])) if (cnt > 0).any() else 0.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            use = ((cnt >= max(min_points, 0.4 * full)) & (np.abs(S[1] / cnt) <= 0.25)
-                   & (np.abs(S[2] / cnt) <= 0.25))
+        del cnt
         sol.fill(np.nan)
-        ui_all = np.flatnonzero(use)
-        for i in range(0, len(ui_all), chunk):
-            ui = ui_all[i:i + chunk]
-            c1, sx, sy = (S[j, ui].astype(np.float64) for j in (0, 1, 2))
-            M = np.empty((len(ui), 3, 3))
-            M[:, 0] = np.stack([c1, sx, sy], -1)
-            M[:, 1] = np.stack([sx, S[3, ui], S[4, ui]], -1)
-            M[:, 2] = np.stack([sy, S[4, ui], S[5, ui]], -1)
-            bz = np.stack([S[6, ui], S[7, ui], S[8, ui]], -1).astype(np.float64)
-            det = np.linalg.det(M)
-            good = np.abs(det) > 1e-6 * np.maximum(c1, 1) ** 3
-            sol[ui[good]] = np.linalg.solve(M[good], bz[good][..., None])[..., 0]
-            # cells with too little spread for a plane: their mean
-            sol[ui[~good], 0] = bz[~good, 0] / c1[~good]
-            sol[ui[~good], 1:] = 0.0
+        for b0 in range(0, rows, band_rows):
+            i0, i1 = b0 * cols, min(rows, b0 + band_rows) * cols
+            nb = i1 - i0
+            S = np.zeros((10, nb), np.float32)
+            for ch in chunks:
+                idx, dx, dy, Z = cells(ch)
+                k = keep[ch[3]] & (idx >= i0) & (idx < i1)
+                if not k.any():
+                    continue
+                idx, dx, dy, Z = idx[k] - i0, dx[k], dy[k], Z[k]
+                S[0] += np.bincount(idx, minlength=nb)
+                for j, v in enumerate((dx, dy, dx * dx, dx * dy, dy * dy, Z, Z * dx, Z * dy),
+                                      1):
+                    S[j] += np.bincount(idx, weights=v, minlength=nb)
+                S[9] += np.bincount(idx, weights=ch[1][ch[2]][k].astype(np.float64) ** 2,
+                                    minlength=nb)
+            cb = S[0]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ub = ((cb >= max(min_points, 0.4 * full)) & (np.abs(S[1] / cb) <= 0.25)
+                      & (np.abs(S[2] / cb) <= 0.25))
+            use[i0:i1] = ub
+            ub_all = np.flatnonzero(ub)
+            for i in range(0, len(ub_all), chunk):
+                ub = ub_all[i:i + chunk]
+                ui = ub + i0
+                c1, sx, sy = (S[j, ub].astype(np.float64) for j in (0, 1, 2))
+                M = np.empty((len(ub), 3, 3))
+                M[:, 0] = np.stack([c1, sx, sy], -1)
+                M[:, 1] = np.stack([sx, S[3, ub], S[4, ub]], -1)
+                M[:, 2] = np.stack([sy, S[4, ub], S[5, ub]], -1)
+                bz = np.stack([S[6, ub], S[7, ub], S[8, ub]], -1).astype(np.float64)
+                det = np.linalg.det(M)
+                good = np.abs(det) > 1e-6 * np.maximum(c1, 1) ** 3
+                sol[ui[good]] = np.linalg.solve(M[good], bz[good][..., None])[..., 0]
+                # cells with too little spread for a plane: their mean
+                sol[ui[~good], 0] = bz[~good, 0] / c1[~good]
+                sol[ui[~good], 1:] = 0.0
+            if rnd == 1:
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    sig[i0:i1] = np.sqrt(S[9] / np.maximum(S[0], 1))
+            del S
         if rnd == 1:
             break
         # the robust spread of the residuals (a sample), then the points to keep
         res_s = []
         for ch in chunks:
             idx, dx, dy, Z = cells(ch)
-            res_s.append(np.abs(Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy))[::7])
+            res_s.append(np.abs(Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy))[::7]
+                         .copy())
         spread = 3.0 * 1.4826 * float(np.nanmedian(np.concatenate(res_s)))
         del res_s
         for ch in chunks:
@@ -639,8 +668,6 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16) -> DSM:
             keep[ch[3]] = res <= np.maximum(4.0 * ch[1][ch[2]], spread)
     Zc = sol[:, 0]
     valid = np.isfinite(Zc) & use
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sig = np.sqrt(S[9] / np.maximum(S[0], 1))
     Zg = np.where(valid, Zc + np.float32(z_ref), np.nan).reshape(rows, cols).astype(np.float32)
     Sg = np.where(valid, sig, np.nan).reshape(rows, cols).astype(np.float32)
     return DSM(Zg, Sg, float(x0), float(y0), float(gsd),
