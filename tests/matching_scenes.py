@@ -132,3 +132,19 @@ def true_session(scene, folder) -> Path:
                                     0.0, 0.0, to_photo=m, to_film=m.inverse, name=side))
     Session.create(folder, StereoModel(*photos)).close()
     return folder
+
+
+def run_cli(args):
+    """``softplot ARGS`` in-process: ``(exit code, output)``; a SoftplotError becomes
+    ``(2, "softplot: error: ...")`` as the console entry point prints it, anything else raises."""
+    from click.testing import CliRunner
+
+    from softplot.cli import cli
+    from softplot.errors import SoftplotError
+
+    r = CliRunner().invoke(cli, args, standalone_mode=False, catch_exceptions=True)
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        if isinstance(r.exception, SoftplotError):
+            return 2, f"softplot: error: {r.exception}"
+        raise r.exception
+    return r.exit_code or 0, r.output

@@ -6,10 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from matching_scenes import make_strip
-from softplot.cli import cli
+from matching_scenes import run_cli as run
 from softplot.geometry.rotation import rotation_matrix
 
 
@@ -18,17 +17,6 @@ def strip(tmp_path_factory):
     base = tmp_path_factory.getbasetemp()
     return make_strip(str(base / "matching-strip"), 600.0,
                       pair_folder=str(base / "matching-scene"))
-
-
-def run(args):
-    r = CliRunner().invoke(cli, args, standalone_mode=False, catch_exceptions=True)
-    if r.exception is not None and not isinstance(r.exception, SystemExit):
-        from softplot.errors import SoftplotError
-
-        if isinstance(r.exception, SoftplotError):
-            return 2, f"softplot: error: {r.exception}"
-        raise r.exception
-    return r.exit_code or 0, r.output
 
 
 def _invariants(X0, M):

@@ -6,10 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from matching_scenes import make_scene, true_right
-from softplot.cli import cli
+from matching_scenes import run_cli as run
 
 
 @pytest.fixture(scope="session")
@@ -24,20 +23,6 @@ def ties(scene):
 
     _, scans, maps = load_pair(*scene.scans, scene.camera.name, *scene.detections)
     return match_pair(scans[0], scans[1], maps[0], maps[1]), maps
-
-
-def run(args):
-    from softplot.cli import main
-
-    r = CliRunner().invoke(cli, args, standalone_mode=False, catch_exceptions=True)
-    if r.exception is not None and not isinstance(r.exception, SystemExit):
-        from softplot.errors import SoftplotError
-
-        if isinstance(r.exception, SoftplotError):
-            return 2, f"softplot: error: {r.exception}"
-        raise r.exception
-    assert main  # the console entry point turns SoftplotError into exit 2 (tested elsewhere)
-    return r.exit_code or 0, r.output
 
 
 def test_ties_within_a_tenth_of_a_pixel(ties, scene):
