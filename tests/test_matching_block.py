@@ -70,3 +70,9 @@ def test_block_bad_input(strip, tmp_path):
     code, text = run(["match", *map(str, strip.scans), "--camera", "rollei-6006",
                       "--detection", str(strip.detections[0]), "--out", str(tmp_path / "o")])
     assert code == 2 and "one --detection per scan" in text
+    # a missing scan: refused before any work, naming it, nothing written
+    gone = tmp_path / "gone.tif"
+    code, text = run(["match", *map(str, strip.scans), str(gone), "--camera", "rollei-6006",
+                      "--out", str(tmp_path / "o2"), "--workers", "0"])
+    assert code == 2 and text == f"softplot: error: {gone}: file not found"
+    assert not (tmp_path / "o2").exists()

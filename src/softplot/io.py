@@ -371,6 +371,20 @@ def scan_kind(path: str | Path) -> str | None:
     return None
 
 
+def check_scan_path(path) -> Path:
+    """``path`` as a Path when it names a regular file; otherwise :class:`ScanError`, one line
+    (``"<path>: file not found"``, a directory, not a regular file). Lets a command refuse a
+    missing scan before it starts any work."""
+    p = Path(path)
+    if not p.exists():
+        raise ScanError(f"{p}: file not found")
+    if p.is_dir():
+        raise ScanError(f"{p}: is a directory, not a scan file")
+    if not p.is_file():
+        raise ScanError(f"{p}: not a regular file")
+    return p
+
+
 def load_scan(path: str | Path) -> Scan:
     """Read a scan file (TIFF, PNG, JPEG or camera RAW) into a :class:`Scan`.
 
@@ -391,13 +405,7 @@ def load_scan(path: str | Path) -> Scan:
         One line ``"<path>: <problem>"`` for a missing, empty, corrupt, truncated or
         unsupported file, a zero-size image or a float image without a finite pixel.
     """
-    p = Path(path)
-    if not p.exists():
-        raise ScanError(f"{p}: file not found")
-    if p.is_dir():
-        raise ScanError(f"{p}: is a directory, not a scan file")
-    if not p.is_file():
-        raise ScanError(f"{p}: not a regular file")
+    p = check_scan_path(path)
     kind = scan_kind(p)
     if kind is None:
         raise ScanError(

@@ -87,6 +87,10 @@ def command(scans, camera, detection_left, detection_right, detections, out, max
 
     if len(scans) < 2:
         raise SoftplotError(f"give two scans (a pair) or more (a block), got {len(scans)}")
+    from softplot.io import check_scan_path
+
+    for s in scans:  # a missing scan is refused before any matching starts
+        check_scan_path(s)
     opts = MatchOptions(max_ties=max_ties, min_corr=min_corr)
     if len(scans) > 2 or as_block:
         from softplot.matching.block import match_block
