@@ -493,7 +493,9 @@ class GrblSimulator:
             self._time_faults()
             if not self._paused():
                 self._process_lines()
-        self._flush_out()
+            # under the lock: a reboot() from another thread clears and refills the queue, and
+            # an unlocked flush could pop the new banner in place of the chunk it had written
+            self._flush_out()
 
     def _flush_out(self):
         now = self.now()
