@@ -303,6 +303,8 @@ def test_mouse_keys_and_wheel_drive_the_plotter(env):
     for _ in range(3):
         page.mouse.wheel(0, -100)
     wait(page, "softplot.state().height === 8")
+    # the feature code follows the mode until the operator types one: a contour line's here
+    wait(page, "document.getElementById('code').value === 'CONTOUR'")
     page.keyboard.press("]")
     wait(page, "softplot.state().height === 9")
     n = js(page, "softplot.state().features")
@@ -313,8 +315,15 @@ def test_mouse_keys_and_wheel_drive_the_plotter(env):
     wait(page, "softplot.state().mode === 'free'")
     page.keyboard.press("m")  # free -> single: the spot height is measured there
     wait(page, "softplot.state().mode === 'single'")
+    wait(page, "document.getElementById('code').value === 'SPOT'")
     page.keyboard.press("r")
     wait(page, f"softplot.state().features === {n + 1}")
+    # a code the operator typed stays through mode changes
+    page.fill("#code", "KERB")
+    js(page, "document.getElementById('code').blur()")
+    js(page, "softplot.setMode('contour', 9)")
+    wait(page, "softplot.state().mode === 'contour'")
+    assert js(page, "document.getElementById('code').value") == "KERB"
     lat = js(page, "softplot.latencies()")
     assert lat and all(x > 0 for x in lat)  # measured inside the page (figures: benchmarks)
 

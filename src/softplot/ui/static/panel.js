@@ -19,6 +19,8 @@ export class Panel {
     $('view-mode').onchange = e => { app.view = e.target.value; app.dirty = true; };
     $('swap').onchange = e => { app.swap = e.target.checked; app.dirty = true; };
     $('mode').onchange = e => this.setMode(e.target.value);
+    this.codeTyped = false;
+    $('code').oninput = () => { this.codeTyped = $('code').value.trim() !== ''; };
     $('height').onchange = e => {
       const h = parseFloat(e.target.value);
       if (Number.isFinite(h)) this.act(app.st.mode === 'contour' ? { op: 'mode', mode: 'contour', height: h } : null);
@@ -55,7 +57,11 @@ export class Panel {
     document.addEventListener('keydown', e => this.key(e));
   }
 
-  code() { return $('code').value.trim() || 'SPOT'; }
+  // the feature code: what the operator typed, else the mode's default (a spot height in
+  // single mode, a contour line in contour mode), which follows the mode until one is typed
+  code() { return $('code').value.trim() || this.defaultCode(); }
+
+  defaultCode() { return this.app.st && this.app.st.mode === 'contour' ? 'CONTOUR' : 'SPOT'; }
 
   act(msg) {
     if (!msg) return;
@@ -171,5 +177,6 @@ export class Panel {
     }
     if (document.activeElement !== $('height') && st.height != null) $('height').value = st.height;
     if (document.activeElement !== $('mode')) $('mode').value = st.mode;
+    if (!this.codeTyped && document.activeElement !== $('code')) $('code').value = this.defaultCode();
   }
 }
