@@ -9,14 +9,21 @@
 3. OpenCV semi-global matching (``StereoSGBM``, 3-way) left -> right and right -> left
    (flipped images); sub-pixel disparity (1/16 px); a pixel is kept when both agree within
    ``lr_px`` (left-right consistency) and its confidence is high enough;
-4. confidence: the disparity's standard deviation ``sigma_d = sqrt(2) s_n / sqrt(sum g_x^2)``
-   over the matching window (``s_n`` the image noise, estimated robustly; ``g_x`` the
-   horizontal gradient) - blank (textureless) areas have a large ``sigma_d`` and are dropped;
+4. sub-pixel disparity by dense least-squares matching (:func:`refine_disparity`: the
+   window warped by the local plane of the disparities, so it follows slopes); texture test:
+   ``sigma_n = sqrt(2) s_n / sqrt(sum g_x^2)`` over the matching window (``s_n`` the image
+   noise, estimated robustly; ``g_x`` the horizontal gradient) - blank (textureless) areas
+   have a large ``sigma_n`` and are dropped; the disparity's stated standard deviation
+   ``sigma_d = sqrt(s0^2 kappa / sum g_x^2)`` from the window's own residuals ``s0`` (both
+   images' noise and what the model misses) and their correlation between neighbouring
+   pixels ``kappa`` (blur, resampling);
 5. intersection in the normalised frame into object space, with the height precision
    propagated from ``sigma_d``;
 6. gridding at ``gsd`` m: a plane fitted to the points of each cell (so the slope within a
    cell does not bias it) evaluated at the cell centre; cells with fewer than
-   ``min_points`` points are no-data. Nothing is interpolated into empty cells.
+   ``min_points`` points are no-data. The cell's precision: the points' height variance
+   times the mean correlation of their errors (neighbouring matching windows share pixels:
+   :func:`_mean_correlation`). Nothing is interpolated into empty cells.
 
 Grid: object X east, Y north (m); row 0 is the northernmost row; ``x0``, ``y0`` are the
 object X, Y of the centre of the top-left cell; rows run towards -Y.
@@ -210,12 +217,20 @@ def _stretch(imgs, valid) -> list:
     return [np.clip((im - lo) * sc, 0, 255).astype(np.uint8) for im in imgs]
 
 
+#: causes of an invalid pixel in ``dense_surface(..., diag=)``: the first test it fails
+CAUSES = {0: "valid", 1: "outside the left image", 2: "format border (window reach)",
+          3: "reseau cross / fiducial", 4: "near the image edge (SGM block)",
+          5: "semi-global: left-right / uniqueness", 6: "sigma_d too large (texture)",
+          7: "correlation too low", 8: "window share off marks", 9: "refinement moved > lr_px",
+          10: "right pixel outside / on a mark", 11: "other"}
+
+
 #: rows of the normalised images refined, checked and intersected at a time
 STRIP_ROWS = 64
 
 
 def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = None,
-                  progress=None) -> DSM:
+                  progress=None, diag: dict | None = None) -> DSM:
     """DSM of an oriented pair (see the module docstring).
 
     Parameters
@@ -227,6 +242,9 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         Scans (H, W) grey or (H, W, C), pixel system; never copied at full size as floats.
     gsd : float
         Grid spacing, object m.
+    diag : dict, optional
+        Filled with per-pixel figures of the left normalised image for diagnosis (costs
+        memory): ``cause`` (uint8, the first test a pixel fails, :data:`CAUSES`), ``geo``.
     """
     from softplot.matching.epipolar import epipolar_geometry, resample_pair
 
@@ -310,6 +328,10 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     win = np.ones((opt.window + 2, opt.window + 2), np.uint8)
     near = np.ones((5, 5), np.uint8)
     bad_l = cv2.dilate((~fmt[0]).astype(np.uint8), win) > 0
+    if diag is not None:
+        diag_fmt = bad_l.copy()
+        diag_mk = cv2.dilate(mk[0].rows(0, L.shape[0]).view(np.uint8), near) > 0
+        diag_ero = cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
     bad_l |= cv2.dilate(mk[0].rows(0, L.shape[0]).view(np.uint8), near) > 0
     bad_l |= cv2.erode(valid_l.astype(np.uint8), np.ones((2 * opt.block + 1,) * 2)) == 0
     bad_r = cv2.dilate((~fmt[1] | (R <= 0)).astype(np.uint8), win) > 0
@@ -328,6 +350,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     hf = FILL_HALO
     Pz, Sz, n_ok, n_cons = [], [], 0, 0
     sig_med = []
+    kap = []
     for r0 in range(0, L.shape[0], STRIP_ROWS):
         r1 = min(L.shape[0], r0 + STRIP_ROWS)
         a0, a1 = max(0, r0 - h), min(L.shape[0], r1 + h)
@@ -345,14 +368,19 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
             D0 = D_s[a0:a1]
         c_s = cons.rows(a0, a1)
         d0 = np.where(c_s, D0, 0.0).astype(np.float32)
-        d, corr, energy, share = refine_disparity(
-            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mkl, wr=1.0 - mkr)
+        d, corr, energy, share, s02, kappa = refine_disparity(
+            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mkl, wr=1.0 - mkr, smooth=opt.window)
         del Lf, Rf, D0, mkl, mkr
         k0, k1 = r0 - a0, r1 - a0
         n_cons += int(np.count_nonzero(c_s[k0:k1]))
         d, corr, energy, d0 = d[k0:k1], corr[k0:k1], energy[k0:k1], d0[k0:k1]
-        sigma_d = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
-        ok = (c_s[k0:k1] & (sigma_d <= opt.max_sigma_d) & (corr >= opt.min_corr)
+        d_all = d
+        # the texture test: the disparity's precision from the image noise alone (blank
+        # areas have no gradients); the stated precision: from the window's own residuals
+        sigma_n = np.sqrt(2.0) * s_n / np.sqrt(np.maximum(energy, 1e-12))
+        sigma_d = np.sqrt(s02[k0:k1] * kappa / np.maximum(energy, 1e-12))
+        kap.append(kappa)
+        ok = (c_s[k0:k1] & (sigma_n <= opt.max_sigma_d) & (corr >= opt.min_corr)
               & (share[k0:k1] >= opt.min_window_share)
               & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l.rows(r0, r1))
         rr, cc = np.nonzero(ok)
@@ -360,6 +388,21 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         cr = np.rint(cc - d).astype(np.int64)
         inside = (cr >= 0) & (cr < R.shape[1])
         inside[inside] &= ~bad_r.rows(r0, r1)[rr[inside], cr[inside]]
+        if diag is not None:
+            cz = np.zeros((r1 - r0, L.shape[1]), np.uint8)
+            tests = [(1, ~(L[r0:r1] > 0)), (2, diag_fmt[r0:r1]), (3, diag_mk[r0:r1]),
+                     (4, diag_ero[r0:r1]), (5, ~c_s[k0:k1]),
+                     (6, sigma_n > opt.max_sigma_d), (7, corr < opt.min_corr),
+                     (8, share[k0:k1] < opt.min_window_share),
+                     (9, np.abs(d_all - d0) > opt.lr_px * hs)]
+            for code, t in tests[::-1]:
+                cz[t] = code
+            cz[rr[~inside], cc[~inside]] = 10
+            cz[(cz == 0) & ~ok] = 11
+            diag.setdefault("cause", []).append(cz)
+            diag.setdefault("d0", []).append(d0.copy())
+            diag.setdefault("d", []).append(d_all.copy())
+            diag.setdefault("sigma_d", []).append(sigma_d.astype(np.float32))
         rr, cc, d = rr[inside] + r0, cc[inside], d[inside]
         n_ok += len(rr)
         # intersection in the normalised frame
@@ -379,7 +422,13 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
     n_left = int(np.count_nonzero(L))
     del L, R, D_s, cons, bad_l, bad_r, mk
     say("gridding")
-    dsm = _grid(Pz, Sz, gsd, opt.min_points)
+    if diag is not None:
+        diag["geo"] = geo
+        diag["hs"] = hs
+        for k in ("cause", "d0", "d", "sigma_d"):
+            diag[k] = np.vstack(diag[k])
+        diag["points"] = (np.vstack(Pz), np.concatenate(Sz))
+    dsm = _grid(Pz, Sz, gsd, opt.min_points, window=opt.window)
     del Pz, Sz
     sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
     dsm.info.update({
@@ -388,6 +437,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         "disparity_range_px": [float(dmin), float(dmax)],
         "noise_grey": s_n, "flying_height_m": H,
         "sigma_d_px_median": float(np.median(sm)) if sm.size else None,
+        "residual_correlation_factor": float(np.median(kap)) if kap else None,
     })
     return dsm
 
@@ -481,17 +531,26 @@ def _sgbm_lr(L8, R8, dmin, dmax, opt):
 
 
 def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3, wl=None,
-                     wr=None):
+                     wr=None, smooth: int = 0):
     """Sub-pixel refinement of a disparity map by dense 1-D least-squares matching.
 
     For every pixel, Gauss-Newton on the shift that minimises the weighted sum over a
-    ``window`` square of ``((L(x) - m_L) - (R(x - d) - m_R))^2`` (weighted local means
-    removed); the right image is warped by each pixel's own disparity (bicubic). Weights:
-    ``wl`` of the left pixels times ``wr`` of the right pixels they fall on (0 on the marks:
-    a window may reach over a mark, which then does not count). Returns the refined
-    disparity, the correlation coefficient of each window after refinement, the weighted
-    sum of squared gradients of the window (for the precision) and the share of the window
-    that counts.
+    ``window`` square of ``((L(x) - m_L) - (R(x - D(x) - s) - m_R))^2`` (weighted local
+    means removed), where ``D`` is the warp: the local mean of the current disparities of
+    the valid pixels over ``smooth`` x ``smooth`` pixels (the centre value of a plane fitted
+    to them), so the window follows a slope of the surface - its right half is compressed
+    or stretched as the ground tilts - and not the noise of single disparities; the pixel's
+    disparity is then ``D + s``. With ``smooth`` <= 1 the warp is each pixel's own disparity.
+    The right image is resampled bicubic. Weights: ``wl`` of the left pixels times ``wr``
+    of the right pixels they fall on (0 on the marks: a window may reach over a mark, which
+    then does not count).
+
+    Returns the refined disparity (px), the correlation coefficient of each window after
+    refinement, the weighted sum of squared gradients of the window ``E``, the share of the
+    window that counts, the a posteriori variance ``s0^2`` of a grey-value difference in the
+    window after the shift (2 parameters estimated: shift and mean) and the residuals'
+    correlation factor ``kappa`` (:func:`_correlation_factor`, pooled over the valid pixels):
+    the disparity's standard deviation is ``sqrt(s0^2 kappa / E)``.
     """
     L = L.astype(np.float32)
     R = R.astype(np.float32)
@@ -515,16 +574,76 @@ def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3, wl=No
         gc = g - box(w * g) / sw
         return w, sw, Lc, Rc, gc
 
+    vm = valid.astype(np.float32)
+    sk = (smooth, smooth)
+
+    def field(d):
+        """the warp: the masked local mean of the disparities (a plane through a symmetric
+        window has its centre value there), so the warp follows the slope, not the noise"""
+        if smooth <= 1:
+            return d
+        num = cv2.boxFilter(d * vm, -1, sk, normalize=True)
+        den = cv2.boxFilter(vm, -1, sk, normalize=True)
+        return np.where(den > 0.2, num / np.maximum(den, 1e-6), d).astype(np.float32)
+
     for _ in range(iterations):
-        w, sw, Lc, Rc, gc = terms(d)
+        D = field(d)
+        w, sw, Lc, Rc, gc = terms(D)
         num = box(w * (Lc - Rc) * gc)
         den = box(w * gc * gc)
         step = np.where(valid, -num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
-        d += np.clip(step, -1.0, 1.0)
-    w, sw, Lc, Rc, gc = terms(d)
+        d = np.where(valid, D + np.clip(step, -1.0, 1.0), d).astype(np.float32)
+    D = field(d)
+    w, sw, Lc, Rc, gc = terms(D)
+    r0 = Lc - Rc
+    num = box(w * r0 * gc)
+    den = box(w * gc * gc)
+    step = np.where(valid, -num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
+    d = np.where(valid, D + np.clip(step, -1.0, 1.0), d).astype(np.float32)
     corr = box(w * Lc * Rc) / np.sqrt(np.maximum(box(w * Lc * Lc) * box(w * Rc * Rc), 1e-12))
-    energy = box(w * gc * gc) * (window * window)
-    return d, corr, energy, sw
+    energy = den * (window * window)
+    # a posteriori variance of a grey value difference in the window after the shift
+    # (both images' noise and what the model misses), 2 parameters (shift, mean) estimated
+    nw = np.maximum(sw * (window * window), 3.0)
+    s02 = np.maximum(box(w * r0 * r0) - num * num / np.maximum(den, 1e-12), 0.0) / sw \
+        * (nw / (nw - 2.0))
+    kappa = _correlation_factor(r0 + gc * step, gc, valid)
+    return d, corr, energy, sw, s02, kappa
+
+
+def _correlation_factor(res, g, use, max_lag: int = 3) -> float:
+    """Variance factor of a least-squares shift whose grey-value residuals ``res`` are
+    correlated between neighbouring pixels (the optics' blur, the resampling): the shift's
+    variance is ``s0^2 sum_pq g_p rho(p - q) g_q / (sum g^2)^2``, i.e. ``s0^2 / sum g^2``
+    times ``kappa = sum_lag rho(lag) rho_g(lag)`` with ``rho`` the residuals' and ``rho_g``
+    the gradients' correlation at that pixel lag, pooled over the pixels ``use``. Lags up to
+    ``max_lag`` in both directions; insignificant correlations count as 0."""
+    m = use.astype(bool)
+    if m.sum() < 100:
+        return 1.0
+    r = np.where(m, res - res[m].mean(), 0.0).astype(np.float32)
+    gg = np.where(m, g, 0.0).astype(np.float32)
+    vr, vg = float(np.mean(r[m] ** 2)), float(np.mean(gg[m] ** 2))
+    if not (vr > 0 and vg > 0):
+        return 1.0
+    h, w = r.shape
+    k = 1.0
+    for dy in range(0, max_lag + 1):
+        for dx in range(-max_lag, max_lag + 1):
+            if dy == 0 and dx <= 0:
+                continue
+            xa, xb = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w),
+                                                                     slice(0, w + dx))
+            both = m[:h - dy, xa] & m[dy:, xb]
+            nb = int(both.sum())
+            if nb < 100:
+                continue
+            rho = float(np.sum(r[:h - dy, xa] * r[dy:, xb])) / nb / vr
+            if not abs(rho) > 2.0 / np.sqrt(nb):
+                continue
+            rho_g = float(np.sum(gg[:h - dy, xa] * gg[dy:, xb])) / nb / vg
+            k += 2.0 * rho * rho_g
+    return max(k, 1.0)
 
 
 def _mark_mask(shape, m, f: float = 1.0) -> np.ndarray:
@@ -559,7 +678,8 @@ def _u8(img):
     return np.clip(np.asarray(img, np.float32) * 255.0, 0, 255).astype(np.uint8)
 
 
-def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 17) -> DSM:
+def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 17,
+          window: int | None = None) -> DSM:
     """Plane-fit gridding of points P (N, 3) with height precision sZ (N,), each given
     whole or as a list of pieces (float32).
 
@@ -650,7 +770,8 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 1
                 sol[ui[~good], 1:] = 0.0
             if rnd == 1:
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    sig[i0:i1] = np.sqrt(S[9] / np.maximum(S[0], 1))
+                    sig[i0:i1] = np.sqrt(S[9] / np.maximum(S[0], 1)
+                                         * _mean_correlation(S[0], window))
             del S
         if rnd == 1:
             break
@@ -672,6 +793,29 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 1
     Sg = np.where(valid, sig, np.nan).reshape(rows, cols).astype(np.float32)
     return DSM(Zg, Sg, float(x0), float(y0), float(gsd),
                {"cells_valid": int(valid.sum()), "cells": int(n)})
+
+
+def _mean_correlation(n, window: int | None) -> np.ndarray:
+    """Mean correlation of the height errors of ``n`` points of a cell (array), as a factor
+    of their single-point variance: the variance of their mean.
+
+    The points of a cell are neighbouring pixels, about ``s = sqrt(n)`` a side; the
+    disparities of two pixels ``(i, j)`` apart come from matching windows of ``window``
+    pixels that overlap by ``(1 - |i|/window)+ (1 - |j|/window)+`` of their pixels, and
+    their errors are correlated by as much. The mean over all pairs of a square of ``s`` by
+    ``s`` pixels is ``m(s)^2`` with ``m(s) = sum_k (s - |k|) (1 - |k|/window)+ / s^2``. With
+    no ``window``: 1 (the single-point variance)."""
+    n = np.asarray(n, np.float64)
+    if window is None:
+        return np.ones_like(n)
+    s = np.maximum(np.rint(np.sqrt(np.maximum(n, 1.0))), 1.0)
+    smax = int(s.max()) if s.size else 1
+    table = np.ones(smax + 1)
+    for si in range(1, smax + 1):
+        k = np.arange(-(si - 1), si)
+        table[si] = float(np.sum((si - np.abs(k)) * np.clip(1 - np.abs(k) / window, 0, None))
+                          ) / si**2
+    return table[s.astype(np.int64)] ** 2
 
 
 def write_geotiff(path, dsm: DSM, overwrite: bool = False) -> tuple[Path, Path]:
