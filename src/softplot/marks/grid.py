@@ -26,8 +26,8 @@ from scipy.spatial import cKDTree
 
 from softplot.camera import Reseau
 
-__all__ = ["GridFit", "fit_grid", "projective_fit", "apply_h", "h_jacobian",
-           "estimate_spacing"]
+__all__ = ["GridFit", "Lattice", "Identification", "fit_grid", "find_lattice", "identify",
+           "projective_model", "projective_fit", "apply_h", "h_jacobian", "estimate_spacing"]
 
 
 def apply_h(H: np.ndarray, xy) -> np.ndarray:
@@ -281,6 +281,53 @@ def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
     return float(theta), c + B @ np.array([pu, pv])
 
 
+@dataclass
+class Lattice:
+    """An affine lattice through candidate peaks (pixel system: x right, y down): the hand-over
+    of the lattice search to the identification.
+
+    Attributes
+    ----------
+    p0 : (2,) float
+        Pixel position of the lattice node of relative index (0, 0).
+    B : (2, 2) float
+        Lattice basis (px): column 0 is the step of +1 column, column 1 of +1 row (a node of
+        relative index (i, j) lies at ``p0 + B @ (i, j)``).
+    idx : (M, 2) int
+        Relative (column, row) index of the node nearest every candidate peak.
+    cand : (K,) int
+        The peaks on the lattice: per node the one closest to it, within the tolerance.
+    px_per_mm : float
+        The nominal scale the lattice was searched at.
+    """
+
+    p0: np.ndarray
+    B: np.ndarray
+    idx: np.ndarray
+    cand: np.ndarray
+    px_per_mm: float
+
+
+@dataclass
+class Identification:
+    """Absolute rows and columns of a lattice's peaks: the hand-over of the identification
+    to the projective model.
+
+    Attributes
+    ----------
+    cand : (K,) int
+        Candidate peaks on crosses of the certificate's grid.
+    node : (K,) int
+        Their cross index (row-major, as :meth:`Reseau.film`).
+    ambiguous : bool
+        Other row/col shifts fit the peaks and the format's edges as well.
+    """
+
+    cand: np.ndarray
+    node: np.ndarray
+    ambiguous: bool
+
+
 def fit_grid(
     xy: np.ndarray,
     score: np.ndarray,
@@ -296,6 +343,10 @@ def fit_grid(
     part: tuple[int, int, int, int] | None = None,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
+
+    Three steps, each with its hand-over: :func:`find_lattice` (an affine :class:`Lattice`
+    through the peaks), :func:`identify` (absolute rows and columns, an
+    :class:`Identification`) and :func:`projective_model` (the :class:`GridFit`).
 
     Parameters
     ----------
@@ -338,6 +389,42 @@ def fit_grid(
     """
     xy = np.asarray(xy, float)
     score = np.asarray(score, float)
+    lat = find_lattice(xy, score, reseau, px_per_mm, rotate_deg, max_rotation_deg, scale_tol)
+    if lat is None:
+        return None
+    ident = identify(lat, score, reseau, image_size, margin_px, frame_evidence, format_mm,
+                     part)
+    if ident is None:
+        return None
+    return projective_model(xy, score, reseau, ident, lat.px_per_mm, scale_tol)
+
+
+def _scale_ok(Bm, lx, ly, scale_tol) -> bool:
+    """The lattice basis ``Bm`` (2, 2) keeps the certificate's spacing ``lx`` x ``ly`` px
+    within ``scale_tol``: a lattice at another spacing is noise, never the reseau."""
+    if scale_tol is None:
+        return True
+    n = np.hypot(Bm[0], Bm[1]) / np.array([lx, ly])
+    return bool(np.all(np.abs(n - 1.0) <= scale_tol))
+
+
+def _best_per_node(idx, sel, key_val):
+    """Indices of ``sel`` keeping, per lattice node (``idx`` (M, 2)), the peak with the
+    smallest key."""
+    order = sel[np.argsort(key_val[sel])]
+    node_key = idx[order, 0].astype(np.int64) * (1 << 32) + idx[order, 1]
+    first = np.unique(node_key, return_index=True)[1]  # first occurrence of each node
+    return np.sort(order[first]).astype(int)
+
+
+def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
+                 max_rotation_deg=20.0, scale_tol=None) -> Lattice | None:
+    """The affine lattice of the reseau's pitch through the candidate peaks ``xy`` (M, 2)
+    (pixel system) with scores ``score`` (M,): rotation and phase by
+    :func:`_lattice_search`, an affine refinement on the peaks within a fifth of a pitch of
+    a node, a robust (least median of squares) lattice through triplets of nodes, and per
+    node the peak closest to it. Arguments as :func:`fit_grid`'s; None when fewer than 3
+    peaks lie on any lattice."""
     M = len(xy)
     if M < 4:
         return None
@@ -359,23 +446,12 @@ def fit_grid(
     # lattice basis in pixels: +1 column, +1 row (row goes down the film = film -y)
     B = np.array([[lx * c, -ly * s], [lx * s, ly * c]])
 
-    def scale_ok(Bm) -> bool:
-        """The lattice keeps the certificate's spacing (at the given dpi) within
-        ``scale_tol``: a lattice at another spacing is noise, never the reseau."""
-        if scale_tol is None:
-            return True
-        n = np.hypot(Bm[0], Bm[1]) / np.array([lx, ly])
-        return bool(np.all(np.abs(n - 1.0) <= scale_tol))
-
     # affine lattice refinement: p = p0 + B @ (i, j)
     p0 = p0_phase.copy()
     Bc = B.copy()
-    inl = None
     # tolerances in lattice units: a fifth of a pitch to start, then at most ~0.5 mm (film
     # deformation and scanner non-linearity stay far below; coarse grids with 20 mm pitches
     # would otherwise admit scene peaks several millimetres off)
-    pmin = min(px, py)
-    t_fine = min(0.2, 0.5 / pmin)
     tol = 0.2
     for _ in range(2):
         f = (xy - p0) @ np.linalg.inv(Bc).T
@@ -385,70 +461,82 @@ def fit_grid(
             return None
         Mx = np.column_stack([np.ones(inl.sum()), idx[inl]])
         sol = np.linalg.lstsq(Mx, xy[inl], rcond=None)[0]
-        if not scale_ok(sol[1:].T):
+        if not _scale_ok(sol[1:].T, lx, ly, scale_tol):
             break
         p0 = sol[0]
         Bc = sol[1:].T
-    def best_per_node(sel, key_val):
-        """Indices of ``sel`` keeping, per lattice node, the peak with the smallest key."""
-        order = sel[np.argsort(key_val[sel])]
-        node_key = idx[order, 0].astype(np.int64) * (1 << 32) + idx[order, 1]
-        first = np.unique(node_key, return_index=True)[1]  # first occurrence of each node
-        return np.sort(order[first]).astype(int)
-
-    # least median of squares over exact affine fits to triplets of nodes (their best-scoring
-    # peaks; all triplets for a few nodes, 300 random ones otherwise), then least squares on
-    # the peaks within max(t_fine, 4 robust sigmas) of that lattice: robust to scene peaks
-    # that fell near a node
     f = (xy - p0) @ np.linalg.inv(Bc).T
     idx = np.round(f).astype(int)
     inl = np.abs(f - idx).max(1) < tol
-    ii = best_per_node(np.where(inl)[0], -score)
-    pitch_px = float(np.sqrt(abs(np.linalg.det(Bc))))
-    lim_px = tol * pitch_px
-    if len(ii) >= 4:
-        from itertools import combinations
-
-        rng = np.random.default_rng(0)
-        if len(ii) <= 22:
-            tri = np.array(list(combinations(range(len(ii)), 3)))
-        else:
-            tri = _random_triplets(rng, len(ii), 300)
-        Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
-        A3 = Mi[tri]  # (T, 3, 3)
-        ok = np.abs(np.linalg.det(A3)) > 1e-9
-        sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
-        if scale_tol is not None and len(sol):
-            # exact lattices through three nodes at another spacing are not the reseau
-            nb = np.hypot(sol[:, 1:, 0], sol[:, 1:, 1]) / np.array([lx, ly])
-            sol = sol[np.all(np.abs(nb - 1.0) <= scale_tol, 1)]
-        if len(sol):
-            # residuals of every node against every triplet's lattice, one coordinate at a
-            # time (two (T, 3) @ (3, n) products)
-            res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[ii, 0], sol[:, :, 1] @ Mi.T - xy[ii, 1])
-            med = np.median(res_px, axis=1)
-            best = int(np.argmin(med))
-            lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
-            p0, Bc = sol[best][0], sol[best][1:].T
+    t_fine = min(0.2, 0.5 / min(px, py))
+    p0, Bc, lim_px = _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine,
+                                     scale_tol)
     # every peak against the robust lattice; per node the closest peak within the limit
     for _ in range(2):
         pred_all = p0 + idx @ Bc.T
         dev_px = np.hypot(*(xy - pred_all).T)
-        cand = best_per_node(np.where(dev_px < lim_px)[0], dev_px)
+        cand = _best_per_node(idx, np.where(dev_px < lim_px)[0], dev_px)
         if len(cand) < 3:
             return None
         Mx = np.column_stack([np.ones(len(cand)), idx[cand]])
         sol = np.linalg.lstsq(Mx, xy[cand], rcond=None)[0]
-        if not scale_ok(sol[1:].T):
+        if not _scale_ok(sol[1:].T, lx, ly, scale_tol):
             break
         p0, Bc = sol[0], sol[1:].T
-    ci, ri = idx[cand, 0], idx[cand, 1]
+    return Lattice(p0=p0, B=Bc, idx=idx, cand=cand, px_per_mm=float(px_per_mm))
 
-    # absolute row/col: choose the index shift that fits the certificate's grid best.
-    # Work on a map of relative lattice indices covering every admissible shift: the score
-    # of a shift is the peak score on the grid minus the score off it, minus a penalty for
-    # every cross of the grid that would lie inside the image without a peak; box sums over
-    # integral images give all shifts at once.
+
+def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, scale_tol):
+    """Least median of squares over exact affine lattices through triplets of nodes (their
+    best-scoring peaks among ``inl``; all triplets for a few nodes, 300 random ones
+    otherwise): robust to scene peaks that fell near a node. Returns (p0, B, lim_px): the
+    lattice (the given one when no triplet fits) and the distance (px) within which a peak
+    belongs to a node, max(t_fine pitches, 4 robust sigmas)."""
+    ii = _best_per_node(idx, np.where(inl)[0], -score)
+    pitch_px = float(np.sqrt(abs(np.linalg.det(Bc))))
+    lim_px = tol * pitch_px
+    if len(ii) < 4:
+        return p0, Bc, lim_px
+    from itertools import combinations
+
+    rng = np.random.default_rng(0)
+    if len(ii) <= 22:
+        tri = np.array(list(combinations(range(len(ii)), 3)))
+    else:
+        tri = _random_triplets(rng, len(ii), 300)
+    Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
+    A3 = Mi[tri]  # (T, 3, 3)
+    ok = np.abs(np.linalg.det(A3)) > 1e-9
+    sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
+    if scale_tol is not None and len(sol):
+        # exact lattices through three nodes at another spacing are not the reseau
+        nb = np.hypot(sol[:, 1:, 0], sol[:, 1:, 1]) / np.array([lx, ly])
+        sol = sol[np.all(np.abs(nb - 1.0) <= scale_tol, 1)]
+    if len(sol):
+        # residuals of every node against every triplet's lattice, one coordinate at a
+        # time (two (T, 3) @ (3, n) products)
+        res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[ii, 0], sol[:, :, 1] @ Mi.T - xy[ii, 1])
+        med = np.median(res_px, axis=1)
+        best = int(np.argmin(med))
+        lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
+        p0, Bc = sol[best][0], sol[best][1:].T
+    return p0, Bc, lim_px
+
+
+def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
+             frame_evidence=None, format_mm=None, part=None) -> Identification | None:
+    """Absolute rows and columns of the lattice's peaks: the index shift that fits the
+    certificate's grid best.
+
+    Works on a map of relative lattice indices covering every admissible shift: the score of
+    a shift is the peak score on the grid minus the score off it, minus a penalty for every
+    cross of the grid that would lie inside the image without a peak (box sums over integral
+    images give all shifts at once); the format's edges the scan shows decide between shifts
+    the crosses cannot tell apart. Arguments as :func:`fit_grid`'s; None when fewer than 3
+    peaks fall on the grid.
+    """
+    cand, p0, Bc = lat.cand, lat.p0, lat.B
+    ci, ri = lat.idx[cand, 0], lat.idx[cand, 1]
     W, Hh = image_size
     rows, cols = reseau.rows, reseau.cols
     sc = score[cand]
@@ -465,13 +553,14 @@ def fit_grid(
               & (pos[:, 1] >= margin_px) & (pos[:, 1] <= Hh - 1 - margin_px)).reshape(nj, ni)
     U = (inside & ~seen_map).astype(float)
 
-    def box_sums(Mp):
+    def box_sums(Mp, r0=0, r1=rows, c0=0, c1=cols):
         c = np.zeros((nj + 1, ni + 1))
         c[1:, 1:] = Mp.cumsum(0).cumsum(1)
-        # box of rows x cols whose top-left relative index is (a, b)
+        # box of rows r0:r1 x cols c0:c1 of the grid whose row 0, col 0 has the relative
+        # index (a, b)
         a = np.arange(nj - rows + 1)[:, None]
         b = np.arange(ni - cols + 1)[None, :]
-        return c[a + rows, b + cols] - c[a, b + cols] - c[a + rows, b] + c[a, b]
+        return c[a + r1, b + c1] - c[a + r0, b + c1] - c[a + r1, b + c0] + c[a + r0, b + c0]
 
     on = box_sums(S)
     unseen = box_sums(U)
@@ -479,12 +568,7 @@ def fit_grid(
         # the user says which part the scan shows: peaks outside it count against a shift
         # as peaks off the grid do
         c0, c1, r0, r1 = part
-        cc = np.zeros((nj + 1, ni + 1))
-        cc[1:, 1:] = S.cumsum(0).cumsum(1)
-        a = np.arange(nj - rows + 1)[:, None]
-        b = np.arange(ni - cols + 1)[None, :]
-        on = (cc[a + r1, b + c1] - cc[a + r0, b + c1] - cc[a + r1, b + c0]
-              + cc[a + r0, b + c0])
+        on = box_sums(S, r0, r1, c0, c1)
     total_sc = sc.sum()
     # grid centre of each shift vs image centre (tie-breaker)
     a = np.arange(nj - rows + 1)[:, None] + j_lo + (rows - 1) / 2.0
@@ -513,16 +597,22 @@ def fit_grid(
     dc = -(ib + i_lo)
     col, row = ci + dc, ri + dr
     ins = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
-    cand = cand[ins]
-    node = row[ins] * cols + col[ins]
-    if len(cand) < 3:
+    if ins.sum() < 3:
         return None
+    return Identification(cand=cand[ins], node=row[ins] * cols + col[ins], ambiguous=ambiguous)
 
+
+def projective_model(xy, score, reseau: Reseau, ident: Identification, px_per_mm: float,
+                     scale_tol=None) -> GridFit | None:
+    """The projective film-mm -> pixel model through the identified peaks: a few rounds of
+    least squares with rejection beyond a deformation-tolerant threshold (~0.15 mm; the
+    lattice assignment already tolerates +-0.2 pitch, no random sampling needed), and the
+    fit's score against the clutter (the peaks off it). None when the model's scale leaves
+    ``scale_tol``."""
+    cand, node = ident.cand, ident.node
+    cols = reseau.cols
     film = reseau.film()[node]
     pix = xy[cand]
-    # robust projective fit: the lattice assignment already tolerates +-0.2 pitch, so a few
-    # rounds of least squares with rejection beyond a deformation-tolerant threshold
-    # (~0.15 mm) suffice (no random sampling needed)
     thr = max(3.0, 0.15 * px_per_mm)
     keep = np.ones(len(cand), bool)
 
@@ -548,7 +638,7 @@ def fit_grid(
     # lattice: their median, in units of its spread from the median to the 90th percentile):
     # a lattice through clutter scores near 0 however many nodes it fills (its peaks are
     # clutter's), the reseau's crosses by their margin over it
-    off = np.ones(M, bool)
+    off = np.ones(len(xy), bool)
     off[cand] = False
     c50, c90 = np.percentile(score[off], [50, 90]) if off.sum() >= 10 else (0.2, 0.3)
     J = h_jacobian(Hm, np.zeros((1, 2)))[0]
@@ -564,5 +654,5 @@ def fit_grid(
         rotation_deg=rot,
         rms=float(np.sqrt(np.mean(np.sum(res**2, 1)))) if len(res) else 0.0,
         score=float(np.sum(score[cand] - c50) / max(c90 - c50, 0.05)),
-        ambiguous=ambiguous,
+        ambiguous=ident.ambiguous,
     )
