@@ -241,3 +241,85 @@ def test_scoring_counts_what_went_wrong():
     assert sc.claimed == ["R0C0 (dark)"]
     assert len(sc.gross) == 1 and sc.measured == 109
     assert max(sc.err2) == pytest.approx(1.5**2 / 2)
+
+
+def test_renders_that_cannot_show_their_rows_are_recognised():
+    """A part of the frame names its rows only where it shows an end row of the grid and the
+    format's edge beyond it: a flat dark region over the only end row shown hides both."""
+    from softplot.synthetic import ScanSpec
+    from softplot.synthetic.sweep import identifiable
+
+    part = dict(dpi=250, crop_mm=(0.0, 0.0, 19.0, 19.0))  # the top-left of the frame
+    _, truth = render_scan("rollei-6006", ScanSpec(**part), 1)
+    assert identifiable(truth) == ""
+    _, truth = render_scan("rollei-6006", ScanSpec(**part, dark_rows=((0, 0),)), 1)
+    assert "row" in identifiable(truth) and "col" not in identifiable(truth)
+    # the same dark row on the whole frame: the last row and the bottom edge name the rows
+    _, truth = render_scan("rollei-6006", ScanSpec(dpi=250, dark_rows=((0, 0),)), 1)
+    assert identifiable(truth) == ""
+    # a 30-50 % dark region leaves its crosses visible, and the edge
+    _, truth = render_scan("rollei-6006", ScanSpec(**part, dark_rows=((0, 0),),
+                                                  dark_level=0.4), 1)
+    assert identifiable(truth) == ""
+    assert all(m["state"] == "visible" for m in truth["marks"] if m["row"] == 0
+               and m["col"] <= 5)
+    _, truth = render_scan("rollei-6006", ScanSpec(**part, dark_rows=((0, 4),)), 1)
+    assert identifiable(truth).startswith("fewer than 3 x 3")
+
+
+def test_dark_rows_of_the_sweep_lie_in_the_part_shown_and_leave_3x3():
+    """The sweep's flat dark regions cover rows the scan shows (else the condition would be
+    a label only) and leave at least 3 rows of it exposed."""
+    n = 0
+    for s in range(300):
+        c = make_case(s)
+        if "dark-rows" not in c.conditions:
+            continue
+        n += 1
+        (r0, r1), = c.spec.dark_rows
+        c0, c1, p0, p1 = c.part
+        assert p0 <= r0 <= r1 < p1 and (p1 - p0) - (r1 - r0 + 1) >= 3, (s, c.part, r0, r1)
+    assert n >= 30
+
+
+def test_an_ambiguous_render_is_scored_by_what_the_detection_says():
+    """On a render that cannot show its rows, a grid named one row off is a measurement of
+    the crosses it sits on when the detection says that its rows are ambiguous, and wrong
+    row/col when it guesses silently."""
+    from types import SimpleNamespace
+
+    from softplot.synthetic import ScanSpec
+    from softplot.synthetic.sweep import identifiable, score
+
+    _, truth = render_scan("rollei-6006", ScanSpec(dpi=250, crop_mm=(0.0, 0.0, 19.0, 19.0),
+                                                   dark_rows=((0, 0),)), 1)
+    why = identifiable(truth)
+    assert why
+    ms = [m for m in truth["marks"] if m["kind"] == "reseau"]
+    by = {(m["row"], m["col"]): m for m in ms}
+    # every visible cross named one row up (R1C0's cross as R0C0, ...)
+    xy = np.full((len(ms), 2), np.nan)
+    status = []
+    for k, m in enumerate(ms):
+        below = by.get((m["row"] + 1, m["col"]))
+        if below is not None and below["state"] == "visible":
+            xy[k] = (below["x"], below["y"])
+            status.append("measured")
+        else:
+            status.append("missing")
+    det = SimpleNamespace(name=[m["name"] for m in ms], kind=["reseau"] * len(ms),
+                          status=status, reason=[""] * len(ms), xy=xy,
+                          sigma_xy=np.full((len(ms), 2), 0.01), warnings=[],
+                          ids_ambiguous=False)
+    bounds = {m["name"]: 0.01 for m in ms}
+    silent = score(det, truth, bounds, why)
+    assert len(silent.wrong) == silent.visible and silent.measured == 0
+    assert not silent.claimed  # on crosses, not on nothing
+    assert failure_lines(make_case(0), silent)[0].startswith("wrong row/col")
+    det.ids_ambiguous = True
+    said = score(det, truth, bounds, why)
+    assert not said.wrong and not said.claimed and not said.missed
+    assert said.measured == said.visible == len(said.ambiguous) > 9
+    assert max(said.err2) < 1e-20
+    # on a render that shows its rows, saying "ambiguous" does not excuse a wrong name
+    assert score(det, truth, bounds, "").wrong

@@ -71,7 +71,9 @@ class Case:
     ``spec`` is the render (the crosses drawn at ``spec.mark_arm_scale`` /
     ``mark_width_scale`` times the certificate's); ``rotate`` the quarter turn the user
     states (degrees, counter-clockwise); ``jpeg`` the JPEG quality the scan is stored with
-    (None: lossless); ``conditions`` the names it is tabulated under.
+    (None: lossless); ``conditions`` the names it is tabulated under; ``part`` the block of
+    whole crosses the scan shows, ``(col0, col1, row0, row1)`` (half-open, the certificate's
+    columns and rows; the whole grid on a full frame).
     """
 
     seed: int
@@ -80,6 +82,7 @@ class Case:
     rotate: float = 0.0
     jpeg: int | None = None
     conditions: tuple = ()
+    part: tuple = ()
 
     def describe(self) -> str:
         s = self.spec
@@ -238,11 +241,25 @@ def make_case(seed: int, camera: str | None = None) -> Case:
     if any(c > 0 for c in crop) and not (on["half-frame"] or on["quarter-frame"]):
         on["crop"] = True
 
+    # the rows and columns of the part shown (whole crosses: the kept block), film y up and
+    # row 0 at the top
+    c_lo = int(np.ceil((lo_keep[0] + half_span[0]) / pitch[0] - 1e-9))
+    c_hi = int(np.floor((hi_keep[0] + half_span[0]) / pitch[0] + 1e-9))
+    r_lo = int(np.ceil((half_span[1] - hi_keep[1]) / pitch[1] - 1e-9))
+    r_hi = int(np.floor((half_span[1] - lo_keep[1]) / pitch[1] + 1e-9))
+    part = (max(c_lo, 0), min(c_hi, res.cols - 1) + 1, max(r_lo, 0), min(r_hi, res.rows - 1) + 1)
     n_dark = ()
-    if on["dark-rows"]:
-        r0 = int(rng.integers(0, res.rows))
-        r1 = min(res.rows - 1, r0 + int(rng.integers(0, max(1, res.rows // 3))))
-        n_dark = ((r0, r1),)
+    r0 = int(rng.integers(0, res.rows))
+    r1 = min(res.rows - 1, r0 + int(rng.integers(0, max(1, res.rows // 3))))
+    shown = part[3] - part[2]
+    if on["dark-rows"] and shown > 3:
+        # the band over rows the scan shows, leaving at least 3 of them exposed (fewer than
+        # 3 x 3 visible crosses is not a scan the detector is asked to name)
+        k = min(r1 - r0 + 1, shown - 3)
+        a = part[2] + (r0 - part[2]) % (shown - k + 1)
+        n_dark = ((a, a + k - 1),)
+    else:
+        on["dark-rows"] = False
     dark_level = 0.0 if rng.uniform() < 0.6 else rng.uniform(0.3, 0.5)
     spec = ScanSpec(
         dpi=float(dpi), polarity=polarity, blur_sigma_px=float(blur),
@@ -261,7 +278,7 @@ def make_case(seed: int, camera: str | None = None) -> Case:
         dark_rows=n_dark, dark_level=float(dark_level),
     ).validate()
     conds = tuple(c for c in CONDITIONS if on[c]) + (f"layout:{cam.name}",)
-    return Case(int(seed), cam.name, spec, float(turn), jpeg, conds)
+    return Case(int(seed), cam.name, spec, float(turn), jpeg, conds, part)
 
 
 def _turn_crop(crop, turn: int):
@@ -312,6 +329,9 @@ class Score:
     crb2_1: list = field(default_factory=list)
     z2: list = field(default_factory=list)
     seconds: float = 0.0
+    ambiguous_truth: str = ""
+    ids_ambiguous: bool = False
+    ambiguous: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         rms = math.sqrt(np.mean(self.err2)) if self.err2 else float("nan")
@@ -320,7 +340,8 @@ class Score:
                 "measured": self.measured, "missed": self.missed, "wrong": self.wrong,
                 "gross": self.gross, "claimed": self.claimed, "rms_px": rms, "crb_px": crb,
                 "z_rms": math.sqrt(np.mean(self.z2)) if self.z2 else float("nan"),
-                "seconds": self.seconds}
+                "seconds": self.seconds, "ambiguous_truth": self.ambiguous_truth,
+                "ids_ambiguous": self.ids_ambiguous, "ambiguous": self.ambiguous}
 
 
 def _bounds(case: Case, truth: dict, img_grey: np.ndarray | None, jpeg_rms: float) -> dict:
@@ -369,17 +390,86 @@ def _bounds(case: Case, truth: dict, img_grey: np.ndarray | None, jpeg_rms: floa
     return out
 
 
-def score(det, truth: dict, bounds: dict) -> Score:
+def identifiable(truth: dict) -> str:
+    """Why the render cannot show which rows and columns it holds ('' when it can).
+
+    A scan names its crosses when it shows at least 3 x 3 visible crosses (truth state
+    "visible": inside the scan, with contrast; damaged ones count, their arms are mostly
+    there) and, on each axis, an end line of the grid (row 0 or the last row; column 0 or
+    the last column) with a visible cross *and* the film format's edge beyond that line inside
+    the scan: only then does the image say where the grid ends. A part of the lattice without
+    such an edge on an axis could be any part of the grid. A flat dark region that exposes
+    nothing over the only end row shown hides both the row and the edge (its crosses are
+    "dark").
+    """
+    rs = [m for m in truth["marks"] if m["kind"] == "reseau"]
+    if not rs:
+        return ""
+    nr = max(m["row"] for m in rs) + 1
+    nc = max(m["col"] for m in rs) + 1
+    vis = [m for m in rs if m["state"] == "visible"]
+    rows = {m["row"] for m in vis}
+    cols = {m["col"] for m in vis}
+    if len(vis) < 9 or len(rows) < 3 or len(cols) < 3:
+        return f"fewer than 3 x 3 visible crosses ({len(rows)} rows, {len(cols)} cols)"
+    mp = TruthMapping.from_truth(truth)
+    fw, fh = truth["format_mm"]
+    W, H = truth["width"], truth["height"]
+
+    def edge_shown(line: list[dict], key: str, side: float) -> bool:
+        """Is the format's edge beyond this end line inside the scan (along its crosses)?"""
+        if not line:
+            return False
+        if key == "row":  # an edge at film y = side * fh / 2, along the line's film x
+            t = np.array([m["film_x"] for m in line])
+            pts = np.column_stack([t, np.full(len(t), side * fh / 2)])
+        else:
+            t = np.array([m["film_y"] for m in line])
+            pts = np.column_stack([np.full(len(t), side * fw / 2), t])
+        p = mp.film_to_pixel(pts)
+        return bool(np.any((p[:, 0] >= 1) & (p[:, 0] <= W - 2) & (p[:, 1] >= 1)
+                           & (p[:, 1] <= H - 2)))
+
+    why = []
+    for key, sides in (("row", ((0, 1.0), (nr - 1, -1.0))),
+                       ("col", ((0, -1.0), (nc - 1, 1.0)))):
+        ok = False
+        for idx, side in sides:
+            line = [m for m in vis if m[key] == idx]
+            ok |= edge_shown(line, key, side)
+        if not ok:
+            why.append(f"no frame edge shown beside a visible end {key}")
+    return "; ".join(why)
+
+
+def ids_flagged(det) -> bool:
+    """Does the detection say that its rows and columns are ambiguous? (``ids_ambiguous``,
+    or a warning saying so.)"""
+    flag = getattr(det, "ids_ambiguous", None)
+    if flag is not None:
+        return bool(flag)
+    return any("could be several" in w or "ambiguous" in w
+               for w in getattr(det, "warnings", []) or [])
+
+
+def score(det, truth: dict, bounds: dict, ambiguous: str = "") -> Score:
     """Compare a :class:`softplot.marks.result.Detection` with the truth (see :class:`Score`).
 
     * visible: truth state "visible" and not touched by dust or a scratch (``damaged``);
-    * wrong row/col: a measured cross nearer (in px) to another cross's truth than to its
-      own, or more than a quarter pitch from its own;
+    * wrong row/col: a measured cross on another visible cross's truth (within a quarter
+      pitch of it) or more than a quarter pitch from its own;
     * gross: measured more than ``max(1 px, 8 x its bound)`` from its own truth (not wrong;
       listed, and in the RMS like every other measured cross);
-    * claimed: measured where the truth has no cross to see (dark, covered, outside).
+    * claimed: measured where the truth has no cross to see (dark, covered, outside) and not
+      on another cross.
+
+    ``ambiguous`` (:func:`identifiable`'s reason) says that the render cannot show its rows
+    and columns. If the detection then says so too (:func:`ids_flagged`), a cross measured on
+    another visible cross's position is scored as a measurement of that cross and listed in
+    ``ambiguous``, not as a wrong row/col; a detection that does not say so has guessed, and
+    its wrong names count.
     """
-    sc = Score(result=True)
+    sc = Score(result=True, ambiguous_truth=ambiguous, ids_ambiguous=ids_flagged(det))
     tm = {m["name"]: m for m in truth["marks"]}
     rs = [m for m in truth["marks"] if m["kind"] == "reseau"]
     txy = np.array([[m["x"], m["y"]] for m in rs])
@@ -390,33 +480,49 @@ def score(det, truth: dict, bounds: dict) -> Score:
         pitch_px = float(np.median(cKDTree(txy).query(txy, k=2)[0][:, 1]))
     else:
         pitch_px = 1e9
+    amb_ok = bool(ambiguous) and sc.ids_ambiguous
     cov = getattr(det, "cov", None)
     names = list(det.name)
+    status = {}
+    done: set[str] = set()
     for i, name in enumerate(names):
         if det.kind[i] != "reseau":
             continue
         t = tm[name]
         vis = t["state"] == "visible" and not t["damaged"]
         sc.visible += vis
+        status[name] = f"{det.status[i]} {det.reason[i]}".strip()
         measured = det.status[i] == "measured" and bool(np.all(np.isfinite(det.xy[i])))
         if not measured:
-            if vis:
-                sc.missed.append(f"{name}: {det.status[i]} {det.reason[i]}".strip())
             continue
-        if t["arms"] == 0:
-            sc.claimed.append(f"{name} ({t['state']})")
-            continue
-        e = np.asarray(det.xy[i], float) - (t["x"], t["y"])
         d_all = np.hypot(*(txy - det.xy[i]).T)
         j = int(np.argmin(d_all))
-        if rs[j]["name"] != name or np.hypot(*e) > 0.25 * pitch_px:
-            sc.wrong.append(f"{name} measured at {rs[j]['name']} ({np.hypot(*e):.1f} px off)")
+        near = d_all[j] <= 0.25 * pitch_px
+        if rs[j]["name"] == name and near:
+            if t["arms"] == 0:  # found where nothing is to be seen
+                sc.claimed.append(f"{name} ({t['state']})")
+                continue
+        elif near and rs[j]["arms"] > 0:  # on another cross: named wrong
+            if not amb_ok:
+                sc.wrong.append(f"{name} measured at {rs[j]['name']} "
+                                f"({np.hypot(*(det.xy[i] - (t['x'], t['y']))):.1f} px off)")
+                continue
+            sc.ambiguous.append(f"{name} at {rs[j]['name']}")
+            t = rs[j]  # an ambiguous name, declared: scored as the cross it is on
+        elif t["arms"] == 0:
+            sc.claimed.append(f"{name} ({t['state']})")
             continue
-        if t["state"] != "visible" or t["damaged"]:
+        else:
+            sc.wrong.append(f"{name} measured {np.hypot(*(det.xy[i] - (t['x'], t['y']))):.1f}"
+                            f" px from its own, nearest {rs[j]['name']}")
+            continue
+        if t["state"] != "visible" or t["damaged"] or t["name"] in done:
             continue  # cut or damaged: neither counted nor scored
-        b = bounds.get(name, float("nan"))
+        done.add(t["name"])
+        e = np.asarray(det.xy[i], float) - (t["x"], t["y"])
+        b = bounds.get(t["name"], float("nan"))
         if np.hypot(*e) > max(1.0, 8.0 * b if np.isfinite(b) else 1.0):  # listed, and scored
-            sc.gross.append(f"{name} {np.hypot(*e):.2f} px off (bound {b:.3f})")
+            sc.gross.append(f"{t['name']} {np.hypot(*e):.2f} px off (bound {b:.3f})")
         sc.measured += 1
         C = (np.asarray(cov[i], float).reshape(2, 2) if cov is not None
              else np.diag(np.square(np.asarray(det.sigma_xy[i], float))))
@@ -438,6 +544,9 @@ def score(det, truth: dict, bounds: dict) -> Score:
                 sc.crb2.append(b * b)
             if np.isfinite(C).all() and np.linalg.det(C) > 0 and C[0, 0] > 0:
                 sc.z2.append(float(e @ np.linalg.solve(C, e)) / 2)  # e^T C^-1 e / 2
+    for m in rs:  # visible crosses no measurement sits on
+        if m["state"] == "visible" and not m["damaged"] and m["name"] not in done:
+            sc.missed.append(f"{m['name']}: {status.get(m['name'], 'not listed')}")
     return sc
 
 
@@ -495,9 +604,10 @@ def run_case(case: Case, detect_kw: dict | None = None) -> tuple[Score, object]:
         sc.visible = sum(m["kind"] == "reseau" and m["state"] == "visible" and not m["damaged"]
                          for m in truth["marks"])
         sc.seconds = time.perf_counter() - t0
+        sc.ambiguous_truth = identifiable(truth)
         return sc, None
     seconds = time.perf_counter() - t0
-    sc = score(det, truth, _bounds(case, truth, scene, jpeg_rms))
+    sc = score(det, truth, _bounds(case, truth, scene, jpeg_rms), identifiable(truth))
     sc.seconds = seconds
     return sc, det
 
@@ -508,7 +618,9 @@ def failure_lines(case: Case, sc: Score) -> list[str]:
     if not sc.result:
         out.append(f"no result: {sc.error}")
     if sc.wrong:
-        out.append(f"wrong row/col ({len(sc.wrong)}): {'; '.join(sc.wrong[:6])}")
+        guess = (f" on a render that cannot show them ({sc.ambiguous_truth}) without saying "
+                 "so (ids_ambiguous)" if sc.ambiguous_truth else "")
+        out.append(f"wrong row/col ({len(sc.wrong)}){guess}: {'; '.join(sc.wrong[:6])}")
     if sc.claimed:
         out.append(f"claims on invisible crosses ({len(sc.claimed)}): "
                    f"{', '.join(sc.claimed[:8])}")
@@ -559,6 +671,8 @@ def aggregate(results: list[tuple[Case, Score]]) -> dict[str, dict]:
             "claimed": sum(len(s.claimed) for s in scs),
             "gross": sum(len(s.gross) for s in scs),
             "rms_px": rms, "crb_px": crb, "rms_over_crb": rms / crb if crb2 else float("nan"),
+            "ambiguous": sum(bool(s.ambiguous_truth) for s in scs),
+            "ambiguous_warned": sum(bool(s.ambiguous_truth) and s.ids_ambiguous for s in scs),
             "one_arm": len(e1), "rms1_over_crb1": rms1 / crb1 if e1 else float("nan"),
             "z_rms": math.sqrt(np.mean(z2)) if z2 else float("nan"),
         }
@@ -597,14 +711,16 @@ def table(agg: dict[str, dict]) -> str:
         return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else fmt % v
 
     head = ("| condition | scans | result | visible | measured | wrong row/col | claims on "
-            "invisible | gross | RMS px | CRB px | RMS/CRB | one-armed: n, RMS/CRB across "
-            "| normalised-error RMS |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+            "invisible | ambiguous: warned | gross | RMS px | CRB px | RMS/CRB | one-armed: n, "
+            "RMS/CRB across | normalised-error RMS |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for name, r in agg.items():
         lines.append(
             f"| {name} | {r['scans']} | {100 * r['results'] / r['scans']:.1f} % | "
             f"{r['visible']} | {f(100 * r['measured_rate'], '%.2f')} % | {r['wrong']} | "
-            f"{r['claimed']} | {r['gross']} | {f(r['rms_px'], '%.4f')} | "
+            f"{r['claimed']} | {r['ambiguous_warned']} of {r['ambiguous']} | {r['gross']} | "
+            f"{f(r['rms_px'], '%.4f')} | "
             f"{f(r['crb_px'], '%.4f')} | {f(r['rms_over_crb'], '%.2f')} | {r['one_arm']}, "
             f"{f(r['rms1_over_crb1'], '%.2f')} | {f(r['z_rms'], '%.2f')} |")
     return "\n".join(lines)
