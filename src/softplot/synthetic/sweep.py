@@ -249,9 +249,10 @@ def make_case(seed: int, camera: str | None = None) -> Case:
     r_hi = int(np.floor((half_span[1] - lo_keep[1]) / pitch[1] + 1e-9))
     part = (max(c_lo, 0), min(c_hi, res.cols - 1) + 1, max(r_lo, 0), min(r_hi, res.rows - 1) + 1)
     n_dark = ()
-    r0 = int(rng.integers(0, res.rows))
-    r1 = min(res.rows - 1, r0 + int(rng.integers(0, max(1, res.rows // 3))))
     shown = part[3] - part[2]
+    if on["dark-rows"]:
+        r0 = int(rng.integers(0, res.rows))
+        r1 = min(res.rows - 1, r0 + int(rng.integers(0, max(1, res.rows // 3))))
     if on["dark-rows"] and shown > 3:
         # the band over rows the scan shows, leaving at least 3 of them exposed (fewer than
         # 3 x 3 visible crosses is not a scan the detector is asked to name)
