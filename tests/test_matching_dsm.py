@@ -82,7 +82,7 @@ def test_dsm_covers_the_textured_overlap(scene, dsm_run):
     cells, _ = _overlap_cells(scene, dsm)
     assert cells.sum() > 20000
     share = float(np.isfinite(dsm.Z)[cells].mean())
-    assert share >= 0.80, share  # measured 0.85
+    assert share >= 0.90, share
 
 
 def test_dsm_precision_describes_the_error(scene, dsm_run):

@@ -52,12 +52,17 @@ class DsmOptions:
     samples_per_cell: float = 5.0
     block: int = 5
     lr_px: float = 1.0
+    #: largest move of the refinement from the semi-global disparity, semi-global pixels
+    max_move_px: float = 2.0
+    #: no-data cells surrounded by valid ones within this many cells are interpolated
+    #: (0: never)
+    fill_radius: int = 2
     max_sigma_d: float = 0.35
     min_points: int = 3
     uniqueness: int = 5
     window: int = 9
     max_side: int = 2500
-    min_corr: float = 0.7
+    min_corr: float = 0.6
     #: least share of a matching window off the marks
     min_window_share: float = 0.6
     #: semi-global matching runs at half the pixel when the images are wider than this
@@ -382,7 +387,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         kap.append(kappa)
         ok = (c_s[k0:k1] & (sigma_n <= opt.max_sigma_d) & (corr >= opt.min_corr)
               & (share[k0:k1] >= opt.min_window_share)
-              & (np.abs(d - d0) <= opt.lr_px * hs) & ~bad_l.rows(r0, r1))
+              & (np.abs(d - d0) <= opt.max_move_px * hs) & ~bad_l.rows(r0, r1))
         rr, cc = np.nonzero(ok)
         d = d[rr, cc]
         cr = np.rint(cc - d).astype(np.int64)
@@ -394,7 +399,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
                      (4, diag_ero[r0:r1]), (5, ~c_s[k0:k1]),
                      (6, sigma_n > opt.max_sigma_d), (7, corr < opt.min_corr),
                      (8, share[k0:k1] < opt.min_window_share),
-                     (9, np.abs(d_all - d0) > opt.lr_px * hs)]
+                     (9, np.abs(d_all - d0) > opt.max_move_px * hs)]
             for code, t in tests[::-1]:
                 cz[t] = code
             cz[rr[~inside], cc[~inside]] = 10
@@ -429,6 +434,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
             diag[k] = np.vstack(diag[k])
         diag["points"] = (np.vstack(Pz), np.concatenate(Sz))
     dsm = _grid(Pz, Sz, gsd, opt.min_points, window=opt.window)
+    dsm = fill_small_holes(dsm, opt.fill_radius)
     del Pz, Sz
     sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
     dsm.info.update({
@@ -793,6 +799,78 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 1
     Sg = np.where(valid, sig, np.nan).reshape(rows, cols).astype(np.float32)
     return DSM(Zg, Sg, float(x0), float(y0), float(gsd),
                {"cells_valid": int(valid.sum()), "cells": int(n)})
+
+
+def fill_small_holes(dsm: DSM, radius: int = 2, max_misfit: float = 3.0) -> DSM:
+    """The DSM with its small holes interpolated (``radius`` 0: unchanged).
+
+    A no-data cell is filled when valid cells lie on both sides of it along both grid axes
+    within ``radius`` cells and more than half of the ``(2 radius + 1)^2 - 1`` cells around it
+    are valid: a hole at most about ``radius`` cells across; never the edge of a larger
+    hole, an occlusion or a blank area (at most half of the cells around it are valid
+    there), never beyond the surface's edge. Its
+    height: the plane fitted to those cells (weights ``1 / distance^2``) at its centre; it is
+    left empty when the cells do not lie on a plane within ``max_misfit`` times their own
+    precision (a step such as a wall). Its precision: the larger of ``sqrt(mean sigma^2)``
+    of the cells around it and ``s_fit``, the plane's residual RMS (their noise and the
+    surface's bending over the hole). The number of filled cells is ``info["cells_interpolated"]``.
+    """
+    if radius <= 0:
+        dsm.info["cells_interpolated"] = 0
+        return dsm
+    Z, S = dsm.Z, dsm.sigma
+    V = np.isfinite(Z)
+    if not V.any():
+        dsm.info["cells_interpolated"] = 0
+        return dsm
+    z_ref = float(np.nanmedian(Z))
+    Vf = V.astype(np.float64)
+    Zf = np.where(V, Z - z_ref, 0.0)
+    S2 = np.where(V, S.astype(np.float64) ** 2, 0.0)
+    r = np.arange(-radius, radius + 1, dtype=np.float64)
+    dy, dx = np.meshgrid(r, r, indexing="ij")
+    w = np.where((dx == 0) & (dy == 0), 0.0, 1.0 / np.maximum(dx * dx + dy * dy, 1.0))
+
+    def corr(img, k):  # sum over the window of k(offset) img(cell + offset)
+        return cv2.filter2D(np.asarray(img, np.float64), cv2.CV_64F, k,
+                            borderType=cv2.BORDER_CONSTANT)
+
+    # valid cells on both sides along both axes (rows: dy, columns: dx)
+    sides = [corr(Vf, ((dx < 0) & (w > 0)).astype(np.float64)), corr(Vf, (dx > 0) * 1.0),
+             corr(Vf, (dy < 0) * 1.0), corr(Vf, (dy > 0) * 1.0)]
+    cand = ~V & np.all(np.stack(sides) > 0, axis=0) & (corr(Vf, (w > 0) * 1.0)
+                                                         > 0.5 * (w > 0).sum())
+    if not cand.any():
+        dsm.info["cells_interpolated"] = 0
+        return dsm
+    sums = {}
+    for name, img, k in (("w", Vf, w), ("x", Vf, w * dx), ("y", Vf, w * dy),
+                         ("xx", Vf, w * dx * dx), ("xy", Vf, w * dx * dy),
+                         ("yy", Vf, w * dy * dy), ("z", Zf, w), ("zx", Zf, w * dx),
+                         ("zy", Zf, w * dy), ("zz", Zf * Zf, w), ("s2", S2, w),
+                         ("n", Vf, (w > 0) * 1.0)):
+        sums[name] = corr(img, k)[cand]
+    M = np.stack([np.stack([sums["w"], sums["x"], sums["y"]], -1),
+                  np.stack([sums["x"], sums["xx"], sums["xy"]], -1),
+                  np.stack([sums["y"], sums["xy"], sums["yy"]], -1)], 1)
+    b = np.stack([sums["z"], sums["zx"], sums["zy"]], -1)
+    good = np.abs(np.linalg.det(M)) > 1e-9
+    sol = np.full(b.shape, np.nan)
+    sol[good] = np.linalg.solve(M[good], b[good][..., None])[..., 0]
+    # weighted residual RMS of the plane (3 parameters)
+    ssr = sums["zz"] - np.einsum("ni,ni->n", sol, b)
+    n = sums["n"]
+    s_fit = np.sqrt(np.maximum(ssr, 0.0) / sums["w"] * n / np.maximum(n - 3.0, 1.0))
+    s_nb = np.sqrt(sums["s2"] / sums["w"])
+    ok = good & np.isfinite(sol[:, 0]) & (s_fit <= max_misfit * s_nb)
+    rr, cc = np.nonzero(cand)
+    Zo, So = Z.copy(), S.copy()
+    Zo[rr[ok], cc[ok]] = (sol[ok, 0] + z_ref).astype(np.float32)
+    So[rr[ok], cc[ok]] = np.maximum(s_nb[ok], s_fit[ok]).astype(np.float32)
+    info = dict(dsm.info)
+    info["cells_interpolated"] = int(ok.sum())
+    info["cells_valid"] = int(np.isfinite(Zo).sum())
+    return DSM(Zo, So, dsm.x0, dsm.y0, dsm.gsd, info)
 
 
 def _mean_correlation(n, window: int | None) -> np.ndarray:
