@@ -4,9 +4,31 @@
 fit with row/col assignment, prediction of every mark, and least-squares template matching of
 an analytic blurred-mark model at full resolution (see :mod:`softplot.marks.detect`).
 Imports :mod:`softplot.camera`, :mod:`softplot.io` and :mod:`softplot.errors` only.
+
+Stages (each a module with one hand-over object; :mod:`softplot.marks.detect` runs them in
+order, and no stage imports it):
+
+============================  ==========================  ===================================
+module                        hand-over                   owner (development)
+============================  ==========================  ===================================
+common                        (errors, grid part, JSON)   reorg
+overview                      ReseauOverview              ident
+candidates                    Candidates                  ident
+lattice (+ grid, coarse)      Lattice (grid.GridFit)      ident
+geometry                      MarkGeometry                measure
+prediction (in detect)        -                           measure
+measurement (in detect)       measure.Fine                measure
+validation (in detect)        -                           measure
+scene choice (in detect)      -                           speed (with scene_tv, kernels)
+fiducial                      Detection                   reorg
+detect (orchestrator)         Detection                   reorg
+============================  ==========================  ===================================
+
+"(in detect)": still functions of :mod:`softplot.marks.detect`, to become modules of their own.
 """
 
-from softplot.marks.detect import DetectionError, detect  # noqa: F401
+from softplot.marks.common import DetectionError  # noqa: F401
+from softplot.marks.detect import detect  # noqa: F401
 from softplot.marks.result import Detection  # noqa: F401
 
 __all__ = ["detect", "Detection", "DetectionError"]

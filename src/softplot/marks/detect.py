@@ -1,15 +1,19 @@
 """``detect``: find and measure every reseau cross and fiducial mark of a scan.
 
-Pipeline for a reseau camera (pixel system throughout, film mm for the certificate):
+The orchestrator of :mod:`softplot.marks`: it runs the stages in order, each a module with one
+hand-over object (pixel system throughout, film mm for the certificate):
 
-1. overview: the scan reduced by an integer factor chosen so that a cross line is about one
-   overview pixel wide (built blockwise and kept in the scan's own dtype, no float copy);
-2. coarse search: NCC with a cross template rendered from the certificate at the overview's
-   scale, computed in strips of rows (small work buffers); peaks of both signs;
-3. grid fit (:mod:`softplot.marks.grid`): lattice scale/rotation/phase, row/col assignment,
-   projective film -> pixel model by RANSAC, for each polarity; the better one is the scan's
-   polarity (unless given). With a rotation above 2 degrees the NCC is repeated with a rotated
-   template;
+1. overview (:mod:`softplot.marks.overview`, :class:`~softplot.marks.overview.ReseauOverview`):
+   the scan reduced by an integer factor chosen so that a cross line is about one overview
+   pixel wide (built blockwise and kept in the scan's own dtype, no float copy);
+2. candidates (:mod:`softplot.marks.candidates`, :class:`~softplot.marks.candidates.Candidates`):
+   NCC with a cross template rendered from the certificate at the overview's scale, computed in
+   strips of rows (small work buffers); peaks of both signs;
+3. lattice and identification (:mod:`softplot.marks.lattice`,
+   :class:`~softplot.marks.lattice.Lattice`; :mod:`softplot.marks.grid`): lattice
+   scale/rotation/phase, row/col assignment, projective film -> pixel model by RANSAC, for
+   each polarity; the better one is the scan's polarity (unless given). With a rotation above
+   2 degrees the NCC is repeated with a rotated template;
 4. prediction of every cross (model + interpolated residuals of its neighbours), a local search
    in the NCC map, and least-squares template matching at full resolution
    (:mod:`softplot.marks.lsm`) with robust weights, against the scene under each cross as the
@@ -37,7 +41,6 @@ Fiducial cameras go through :mod:`softplot.marks.fiducial`.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import nnls
@@ -46,15 +49,27 @@ from scipy.spatial import cKDTree
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
 from softplot.marks import coarse, grid
+from softplot.marks.candidates import reseau_candidates, search_map
+from softplot.marks.common import (
+    MM_PER_INCH,
+    DetectionError,
+    as_scan,
+    format_grid_part,
+    parse_grid_part,
+    polarity_name,
+    transform_json,
+)
+from softplot.marks.fiducial import detect_fiducials
 from softplot.marks.geometry import estimate_geometry, width_candidates
+from softplot.marks.lattice import estimate_dpi, fit_lattice, turn_template
 from softplot.marks.measure import AcceptRules, measure, measure_one_arm, median_blur
+from softplot.marks.overview import reseau_overview
 from softplot.marks.result import Detection
 from softplot.marks.template import MarkShape, cross_shape
 from softplot.runtime import thread_map
 
 __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_grid_part"]
 
-MM_PER_INCH = 25.4
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
 #: deformation better than a few micrometres there
@@ -79,107 +94,9 @@ JOINT_PASSES = 4
 #: smooth textures reach 0.09 at most, its busy scenes 0.18-0.5 (docs/accuracy.md)
 BUSY_EDGE = 0.13
 BUSY_COUNT = 2
-#: the step of grey (over the scan's range) that a film format's edge shows at least
-FRAME_STEP = 0.25
 #: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
 #: a part of 3 x 3 crosses with a few missing still passes
 MIN_PART = 6
-#: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
-#: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
-SCALE_TOL = 0.03
-
-
-class DetectionError(SoftplotError):
-    """The marks of the certificate cannot be found on the scan (message: expected vs found)."""
-
-
-def as_scan(scan, dpi: float | None = None):
-    """A :class:`softplot.io.Scan` from a Scan, a path or an array."""
-    from softplot import io
-
-    if isinstance(scan, io.Scan):
-        return scan
-    if isinstance(scan, (str, Path)):
-        return io.load_scan(scan)
-    return io.Scan.from_array(np.asarray(scan), dpi=dpi)
-
-
-def parse_grid_part(part, rows: int | None = None, cols: int | None = None):
-    """The part of the reseau a scan shows, as ``(col0, col1, row0, row1)`` (half-open ranges
-    of the certificate's columns and rows; None for None).
-
-    ``part`` is a text ``"cols=A:B,rows=C:D"`` (either may be left out; ``A:B`` are the
-    columns A to B-1, as Python slices; an empty bound is the grid's own), a mapping
-    ``{"cols": (A, B), "rows": (C, D)}`` or such a tuple. With ``rows`` and ``cols`` (the
-    grid's size) the ranges are checked against the grid and open bounds filled in.
-    """
-    if part is None:
-        return None
-    if isinstance(part, str):
-        text = part.replace(" ", "")
-        if not text:
-            raise SoftplotError("--grid-part is empty; give cols=A:B,rows=C:D")
-        d: dict = {}
-        for item in text.split(","):
-            key, eq, rng = item.partition("=")
-            if not eq or key not in ("cols", "rows") or key in d or rng.count(":") != 1:
-                raise SoftplotError(
-                    f"--grid-part {part!r}: expected cols=A:B,rows=C:D (either may be left out), "
-                    f"e.g. cols=0:12")
-            lo, hi = rng.split(":")
-            try:
-                d[key] = (int(lo) if lo else None, int(hi) if hi else None)
-            except ValueError:
-                raise SoftplotError(f"--grid-part {part!r}: {rng!r} is not a range of whole "
-                                    "numbers A:B") from None
-        part = d
-    if isinstance(part, dict):
-        c = part.get("cols") or (None, None)
-        r = part.get("rows") or (None, None)
-        part = (c[0], c[1], r[0], r[1])
-    part = tuple(None if v is None else int(v) for v in part)
-    if len(part) != 4:
-        raise SoftplotError(f"grid part must be (col0, col1, row0, row1), got {part!r}")
-    if rows is None or cols is None:
-        return part
-    c0, c1, r0, r1 = part
-    c0, r0 = c0 if c0 is not None else 0, r0 if r0 is not None else 0
-    c1, r1 = c1 if c1 is not None else cols, r1 if r1 is not None else rows
-    if not (0 <= c0 < c1 <= cols and 0 <= r0 < r1 <= rows):
-        raise SoftplotError(
-            f"--grid-part cols={c0}:{c1},rows={r0}:{r1} is not a part of the {rows}x{cols} "
-            f"grid (columns 0:{cols}, rows 0:{rows})")
-    return (c0, c1, r0, r1)
-
-
-def format_grid_part(part) -> str:
-    """The text ``cols=A:B,rows=C:D`` of a grid part (:func:`parse_grid_part`'s input)."""
-    c0, c1, r0, r1 = parse_grid_part(part)
-
-    def rng(a, b):
-        return f"{'' if a is None else a}:{'' if b is None else b}"
-
-    out = []
-    if (c0, c1) != (None, None):
-        out.append(f"cols={rng(c0, c1)}")
-    if (r0, r1) != (None, None):
-        out.append(f"rows={rng(r0, r1)}")
-    return ",".join(out) or "cols=:"
-
-
-def _polarity_name(sign: int) -> str:
-    return "negative" if sign > 0 else "positive"
-
-
-def _blank_check(ov: np.ndarray, what: str) -> None:
-    if ov.size == 0:
-        raise DetectionError(f"{what}: empty image")
-    lo, hi = np.percentile(ov[:: max(1, ov.shape[0] // 256), :: max(1, ov.shape[1] // 256)],
-                           [1, 99])
-    if hi - lo < 2e-3:
-        raise DetectionError(
-            f"{what}: blank image (grey range {hi - lo:.4f}); expected reseau crosses or fiducial "
-            "marks with some contrast")
 
 
 def _idw(film_all, film_known, val_known, k=4):
@@ -192,176 +109,6 @@ def _idw(film_all, film_known, val_known, k=4):
     j = j.reshape(len(film_all), k)
     w = 1.0 / np.maximum(d, 1e-6) ** 2
     return (val_known[j] * w[..., None]).sum(1) / w.sum(1)[:, None]
-
-
-def _search_map(R, h, sign, xy_ov, radius):
-    """Best NCC position (overview px) of ``sign`` within ``radius`` of each point."""
-    n = len(xy_ov)
-    out = np.full((n, 2), np.nan)
-    val = np.full(n, -np.inf)
-    if R.size == 0:
-        return out, val
-    r = max(int(np.ceil(radius)), 1)
-    ar = np.arange(-r, r + 1)
-    ci = np.round(xy_ov[:, 0] - h).astype(int)
-    cj = np.round(xy_ov[:, 1] - h).astype(int)
-    ii = cj[:, None] + ar[None, :]
-    jj = ci[:, None] + ar[None, :]
-    Hh, W = R.shape
-    vi = (ii >= 0) & (ii < Hh)
-    vj = (jj >= 0) & (jj < W)
-    sub = sign * R[np.clip(ii, 0, Hh - 1)[:, :, None], np.clip(jj, 0, W - 1)[:, None, :]]
-    disk = (ar[:, None] ** 2 + ar[None, :] ** 2) <= r * r
-    ok = vi[:, :, None] & vj[:, None, :] & disk[None]
-    sub = np.where(ok, sub, -np.inf)
-    flat = sub.reshape(n, -1).argmax(1)
-    a, b = np.unravel_index(flat, sub.shape[1:])
-    val = sub[np.arange(n), a, b]
-    # parabola refinement
-    def nb(da, db):
-        aa = np.clip(a + da, 0, 2 * r)
-        bb = np.clip(b + db, 0, 2 * r)
-        v = sub[np.arange(n), aa, bb]
-        return np.where(np.isfinite(v), v, val)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dxd = nb(0, -1) - 2 * val + nb(0, 1)
-        dyd = nb(-1, 0) - 2 * val + nb(1, 0)
-        dx = np.where(dxd < 0, 0.5 * (nb(0, -1) - nb(0, 1)) / dxd, 0.0)
-        dy = np.where(dyd < 0, 0.5 * (nb(-1, 0) - nb(1, 0)) / dyd, 0.0)
-    dx = np.clip(np.nan_to_num(dx), -0.5, 0.5)
-    dy = np.clip(np.nan_to_num(dy), -0.5, 0.5)
-    good = np.isfinite(val)
-    out[good, 0] = (jj[np.arange(n), b] + dx + h)[good]
-    out[good, 1] = (ii[np.arange(n), a] + dy + h)[good]
-    return out, val
-
-
-def _frame_evidence(ov, f: int, ppm: float):
-    """The evidence of a film format's edge in the overview, for :func:`grid.fit_grid`.
-
-    Returns a function of format corners (K, 4, 2) (pixel system; top-left, top-right,
-    bottom-right, bottom-left) giving, per quadrilateral, the sum over its edges that lie in
-    the scan of the step of grey across the edge (median of inside minus outside, 0.3 mm
-    either side, along the edge, over the overview's grey range 5-95 %: near 1 for the
-    unexposed border of a film, small for scene content) less :data:`FRAME_STEP`, over 4:
-    a shift that puts more of the format's edges on real steps wins, one that puts an edge on
-    scene content loses. Edges outside the scan are left out.
-    """
-    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
-    Hh, W = g.shape
-    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
-    lo, hi = np.percentile(sub, [5, 95])
-    rng = max(float(hi - lo), 1e-6)
-    d = max(2.0, 0.3 * ppm / f)
-
-    def sample(p):
-        x = np.round((p[..., 0] + 0.5) / f - 0.5).astype(int)
-        y = np.round((p[..., 1] + 0.5) / f - 0.5).astype(int)
-        ok = (x >= 0) & (x < W) & (y >= 0) & (y < Hh)
-        return np.where(ok, g[np.clip(y, 0, Hh - 1), np.clip(x, 0, W - 1)], np.nan), ok
-
-    def clip(a, b, pad):
-        """Parameters [t0, t1] of the part of segments a -> b (K, 2) within the scan less
-        ``pad`` px (Liang-Barsky), from [0.05, 0.95]; t1 <= t0 where none is."""
-        t0, t1 = np.full(len(a), 0.05), np.full(len(a), 0.95)
-        dd = b - a
-        lim = ((0, pad, W * f - 1 - pad), (1, pad, Hh * f - 1 - pad))
-        for k, lo_, hi_ in lim:
-            for pk, qk in ((-dd[:, k], a[:, k] - lo_), (dd[:, k], hi_ - a[:, k])):
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    t = qk / pk
-                t0 = np.where(pk < 0, np.maximum(t0, t), t0)
-                t1 = np.where(pk > 0, np.minimum(t1, t), t1)
-                t1 = np.where((pk == 0) & (qk < 0), -1.0, t1)
-        return t0, t1
-
-    def evidence(corners):
-        corners = np.asarray(corners, float).reshape(-1, 4, 2)
-        c = corners.mean(1)  # (K, 2)
-        total = np.zeros(len(corners))
-        for e in range(4):  # every shift at once, edge by edge
-            a, b = corners[:, e], corners[:, (e + 1) % 4]
-            tang = (b - a) / np.maximum(np.hypot(*(b - a).T), 1e-9)[:, None]
-            n = np.stack([tang[:, 1], -tang[:, 0]], 1)
-            n *= np.where(np.sum(n * (0.5 * (a + b) - c), 1) < 0, -1.0, 1.0)[:, None]  # out
-            # the part of the edge in the scan, both samples inside: at least 36 overview px
-            # of it (edges outside the scan are left out), sampled at 200 points
-            t0, t1 = clip(a, b, d * f + f)
-            use = np.where((t1 - t0) * np.hypot(*(b - a).T) >= 36.0 * f)[0]
-            if use.size == 0:
-                continue
-            t = t0[use, None] + (t1 - t0)[use, None] * np.linspace(0.0, 1.0, 200)[None, :]
-            p = a[use, None, :] + t[..., None] * (b - a)[use, None, :]  # (U, 200, 2)
-            gi, _ = sample(p - n[use, None, :] * d * f)
-            go, _ = sample(p + n[use, None, :] * d * f)
-            total[use] += np.abs(np.median(gi - go, 1)) / rng - FRAME_STEP
-        return np.clip(total / 4.0, -1.0, 1.0)
-
-    return evidence
-
-
-def _reseau_factor(line_px: float, npix: int) -> int:
-    """Overview reduction: a cross line about 0.6-1.2 overview px wide."""
-    f = max(1, int(line_px / 0.62))
-    # keep the overview to a few megapixels on very large scans
-    while npix / (f * f) > 6e6:
-        f += 1
-    return f
-
-
-def _crosses_in(scan, res, px_per_mm: float) -> int:
-    """The most crosses of the reseau ``res`` a scan can hold at ``px_per_mm`` (either way
-    round): a part of the grid shows fewer than the certificate's."""
-    lx, ly = res.pitch_x * px_per_mm, res.pitch_y * px_per_mm
-    n = max((scan.width / lx + 2) * (scan.height / ly + 2),
-            (scan.height / lx + 2) * (scan.width / ly + 2))
-    return int(min(res.count, n))
-
-
-def _coarse_grid(scan, ov, f, camera, px_per_mm, polarity, rotate_deg, s_full, part=None):
-    """NCC on the overview and grid fit for each admissible polarity."""
-    res = camera.reseau
-    shape_ov = cross_shape(camera, px_per_mm / f)
-    s_ov = float(np.hypot(s_full / f, 0.5))
-    arm_half = min(0.5 * shape_ov.length, max(6.0, 3.0 * shape_ov.width))
-    R, h = coarse.ncc_map(ov, shape_ov, s_ov, arm_half=arm_half)
-    noise_floor = 2e-3
-    pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
-    # the crosses the scan can hold at most (a part of the grid shows fewer than the
-    # certificate's): the number of candidates kept and the polarity's bound follow it
-    n_in = _crosses_in(scan, res, px_per_mm)
-    signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
-    cands = {}
-    for sg in signs:
-        pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
-                               threshold=0.2,
-                               max_peaks=3 * n_in + 100, sign=sg, image=ov,
-                               std_half=max(int(arm_half), 2), min_contrast=noise_floor)
-        if len(pk) < 4:
-            continue
-        # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
-        # sum of the ``count`` best ones (with a margin for the order of summation)
-        bound = float(np.sort(pk.score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
-        cands[sg] = (pk, bound)
-    # fit the polarity that can score most first; another one only if it could still win
-    fits = {}
-    for sg in sorted(cands, key=lambda k: -cands[k][1]):
-        pk, bound = cands[sg]
-        done = [g.score for g in fits.values() if g is not None]
-        if done and bound < max(done):
-            continue
-        xy = coarse.ov_to_full(pk.xy, f)
-        fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
-                                 px_per_mm=px_per_mm, rotate_deg=rotate_deg,
-                                 margin_px=0.5 * shape_ov.length * f,
-                                 frame_evidence=_frame_evidence(ov, f, px_per_mm),
-                                 format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
-    best = None
-    for sg in signs:  # the best score wins, the first polarity on a tie
-        g = fits.get(sg)
-        if g is not None and (best is None or g.score > best[0].score):
-            best = (g, sg, R, h, cands[sg][0])
-    return best
 
 
 def detect(
@@ -423,8 +170,6 @@ def detect(
     if cam.reseau is None:
         if grid_part is not None:
             raise SoftplotError(f"--grid-part: camera {cam.name} has fiducial marks, no reseau")
-        from softplot.marks.fiducial import detect_fiducials
-
         return detect_fiducials(sc, cam, name=name, dpi=dpi, polarity=polarity, rotate=rotate,
                                 blur_px=blur_px, rules=rules)
     part = parse_grid_part(grid_part, cam.reseau.rows, cam.reseau.cols)
@@ -458,45 +203,10 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     dpi = dpi if dpi is not None else sc.dpi
     span_mm = ((res.cols - 1) * res.pitch_x + res.arm_length_mm,
                (res.rows - 1) * res.pitch_y + res.arm_length_mm)
-    npix = sc.width * sc.height
 
     if dpi is None:
         # the scan holds the reseau: a first guess from its size, refined from the spacing
-        guess = 25.4 * min(sc.width / cam.format_mm[0], sc.height / cam.format_mm[1])
-        ppm = guess / MM_PER_INCH
-        f = _reseau_factor(res.line_width_mm * ppm, npix)
-        ov = coarse.overview_compact(sc, f)
-        _blank_check(ov, name)
-        # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi
-        shape_ov = cross_shape(cam, ppm / f)
-        R, h = coarse.ncc_map(ov, shape_ov, 0.7, arm_half=min(0.5 * shape_ov.length, 6.0))
-        pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.3 * min(res.pitch_x, res.pitch_y)
-                                                  * ppm / f),
-                               threshold=0.25, max_peaks=3 * res.count + 100)
-        best_g = None
-        signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
-        pmin = min(res.pitch_x, res.pitch_y)
-        for sg in signs:
-            q = pk.select(pk.sign == sg)
-            xy = coarse.ov_to_full(q.xy, f)
-            # candidate scales: the size-based guess (the scan may show more than the format)
-            # and the most frequent neighbour spacing of the strongest peaks (or its double,
-            # when peaks also sit half-way between crosses)
-            cands = [ppm, 0.9 * ppm, 0.8 * ppm]
-            sp = grid.estimate_spacing(xy[np.argsort(-q.score)[: max(int(1.5 * res.count), 8)]])
-            if sp is not None:
-                cands += [sp / pmin, 2.0 * sp / pmin]
-            for k in cands:
-                g0 = grid.fit_grid(xy, q.score, res, (sc.width, sc.height), px_per_mm=k,
-                                   rotate_deg=rotate_pix)
-                if g0 is not None and (best_g is None or g0.score > best_g.score):
-                    best_g = g0
-        if best_g is None or len(best_g.node) < max(4, 0.2 * res.count):
-            raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
-                                 f"found (expected {res.rows}x{res.cols} crosses at "
-                                 f"{res.pitch_x} mm); give --dpi")
-        dpi = best_g.px_per_mm * MM_PER_INCH
-        del ov, R
+        dpi = estimate_dpi(sc, cam, polarity, rotate_pix, name)
     ppm = dpi / MM_PER_INCH
     # a part of the grid is enough: the scan must hold 3 x 3 crosses (or the whole grid, when
     # smaller), in either orientation (a quarter turn)
@@ -511,36 +221,20 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
             f"{span_mm[0] * ppm:.0f}x{span_mm[1] * ppm:.0f} px, and at least "
             f"{part_mm[0] * ppm:.0f}x{part_mm[1] * ppm:.0f} px for a part of 3x3 crosses)")
     shape = cross_shape(cam, ppm)
-    f = _reseau_factor(shape.width, npix)
-    ov = coarse.overview_compact(sc, f)
-    _blank_check(ov, name)
+    ov = reseau_overview(sc, shape.width, ppm, name)
+    f = ov.factor
     timings["overview"] = time.perf_counter() - t0
-    best = _coarse_grid(sc, ov, f, cam, ppm, polarity, rotate_pix, blur_px, part)
-    if best is None:
+    cands = reseau_candidates(sc, ov, cam, polarity, blur_px)
+    lat = fit_lattice(sc, ov, cands, cam, polarity, rotate_pix, part)
+    del cands
+    if lat is None:
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm ({res.pitch_x * ppm:.0f} px at {dpi:.0f} dpi), "
             "found no regular pattern of cross-like marks")
-    g, sign, R, h, pk = best
-    if abs((g.rotation_deg - rotate_pix + 180.0) % 360.0 - 180.0) > 2.0:
-        # repeat the correlation with the template turned like the grid
-        J = grid.h_jacobian(g.H, np.zeros((1, 2)))[0] / ppm
-        A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
-        shape_ov = cross_shape(cam, ppm / f)
-        R2, h2 = coarse.ncc_map(ov, shape_ov, float(np.hypot(blur_px / f, 0.5)), A=A_ov,
-                                arm_half=min(0.5 * shape_ov.length, 10.0))
-        pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
-                                                              0.5 * shape_ov.length)),
-                                threshold=0.2, max_peaks=3 * _crosses_in(sc, res, ppm) + 100,
-                                sign=sign)
-        g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
-                           (sc.width, sc.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
-                           margin_px=0.5 * shape.length, max_rotation_deg=3.0,
-                           frame_evidence=_frame_evidence(ov, f, ppm),
-                           format_mm=cam.format_mm, scale_tol=SCALE_TOL, part=part)
-        if g2 is not None and len(g2.node) >= len(g.node):
-            g, R, h, pk = g2, R2, h2, pk2
-        del R2
+    # repeat the correlation with the template turned like the grid (when it is turned)
+    lat = turn_template(lat, sc, ov, cam, rotate_pix, blur_px, part)
+    g, sign = lat.grid, lat.sign
     timings["grid"] = time.perf_counter() - t0
     n_assigned = len(g.node)
     if n_assigned < min(MIN_PART, res.count):
@@ -552,14 +246,14 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     film = res.film()
     N = res.count
     pred = grid.apply_h(g.H, film)
-    cand_xy = coarse.ov_to_full(pk.xy[g.index], f)
+    cand_xy = lat.assigned_xy()
     resid = cand_xy - grid.apply_h(g.H, film[g.node])
     pred = pred + _idw(film, film[g.node], resid)
     # local search in the NCC map around each prediction
     spread = float(np.sqrt(np.mean(np.sum(resid**2, 1)))) if len(resid) else 3.0
     radius_ov = max(2.0, (2.0 * spread + 2.0) / f)
-    found_ov, val = _search_map(R, h, sign, coarse.full_to_ov(pred, f), radius_ov)
-    del R, ov, best  # the overview and the NCC map are not needed any more: free them
+    found_ov, val = search_map(lat.ncc, lat.half, sign, coarse.full_to_ov(pred, f), radius_ov)
+    del ov, lat  # the overview and the NCC map are not needed any more: free them
     use = np.isfinite(found_ov).all(1) & (val >= 0.3)
     c0 = np.where(use[:, None], coarse.ov_to_full(found_ov, f), pred)
     # affine of every cross: pixel -> mark frame (u along film x, v along film -y, nominal px)
@@ -659,14 +353,14 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         # resolution (scene texture, the wrong polarity or the wrong camera)
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
-            f"{_polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
+            f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
             f"{n_meas} of the {len(idx)} inside the scan")
     if rms > MAX_GRID_RMS_MM * ppm:
         # measured, but not on a grid: fits to scene content (e.g. the wrong polarity over a
         # busy scene), not a reseau deformed by at most a tenth of a millimetre
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
-            f"{_polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, the {n_meas} "
+            f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, the {n_meas} "
             f"measured lie {rms:.1f} px (rms) off any projective grid (at most "
             f"{MAX_GRID_RMS_MM * ppm:.1f} px, {MAX_GRID_RMS_MM} mm, for a reseau)")
     if n_meas < N:
@@ -686,7 +380,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         width=sc.width,
         height=sc.height,
         dpi=float(dpi),
-        polarity=_polarity_name(sign),
+        polarity=polarity_name(sign),
         kind=["reseau"] * N,
         name=res.names(),
         row=rows_cols[:, 0].astype(int),
@@ -700,7 +394,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         cnr=cnr,
         status=status,
         reason=reason,
-        transform=_transform_json(Hm, rms, n_meas),
+        transform=transform_json(Hm, rms, n_meas),
         rms_px=rms,
         residual=residual,
         warnings=warnings,
@@ -893,18 +587,6 @@ def _held_blur(fine) -> float | None:
     """The blur (px) that refits and rescues hold (:func:`softplot.marks.measure.median_blur`
     of the accepted marks)."""
     return median_blur(fine.s, fine.ok) if fine.s is not None else None
-
-
-def _transform_json(Hm, rms, n) -> dict:
-    return {
-        "kind": "projective",
-        "from": "film_mm",
-        "to": "pixel",
-        "matrix": [[float(v) for v in row] for row in Hm],
-        "rms_px": float(rms),
-        "n": int(n),
-        "formula": "[x y w]^T = H [X Y 1]^T; pixel = (x/w, y/w); X, Y film mm",
-    }
 
 
 def _local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None,

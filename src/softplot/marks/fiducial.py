@@ -17,16 +17,24 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from softplot.marks import coarse, grid
+from softplot.marks.common import (
+    MM_PER_INCH,
+    DetectionError,
+    blank_check,
+    polarity_signs,
+    transform_json,
+)
 from softplot.marks.measure import measure
 from softplot.marks.result import Detection
 from softplot.marks.template import fiducial_shape
 
-__all__ = ["detect_fiducials"]
+__all__ = ["detect_fiducials", "layout_turns"]
 
-MM_PER_INCH = 25.4
 MAX_ROT_DEG = 12.0
 
 
@@ -151,10 +159,6 @@ def layout_turns(fids) -> list[int]:
 
 def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) -> Detection:
     """Fiducial-mark detection (see the module docstring); same result type as reseau."""
-    import time
-
-    from softplot.marks.detect import DetectionError, _blank_check, _transform_json
-
     t0 = time.perf_counter()
     timings: dict = {}
     fids = list(cam.fiducials)
@@ -189,7 +193,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
     while sc.width * sc.height / (F * F) > 12e6:
         F += 1
     ov = coarse.overview(sc, F)
-    _blank_check(ov, name)
+    blank_check(ov, name)
     timings["overview"] = time.perf_counter() - t0
     centre = np.array([(sc.width - 1) / 2.0, (sc.height - 1) / 2.0])
     Lm0 = _film_to_pix_linear(ppm, theta0)
@@ -197,7 +201,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
     margin = max(abs(sc.width - cam.format_mm[0] * ppm), abs(sc.height - cam.format_mm[1] * ppm))
     radius = (0.5 * margin + 10.0 * ppm
               + np.hypot(*film.T).max() * ppm * (np.sin(np.radians(MAX_ROT_DEG)) + scale_tol))
-    signs = (1, -1) if polarity == "auto" else ((1,) if polarity == "negative" else (-1,))
+    signs = polarity_signs(polarity)
     cands = _candidates(ov, F, fids, pred, radius, ppm, blur_px, signs)
     best = None
     for sg in signs:
@@ -273,7 +277,7 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         warnings.append(
             f"the fiducial layout looks the same turned by {' or '.join(map(str, turns))} "
             "degrees: the marks' names rest on --rotate")
-    tr = _transform_json(Hm, rms, int(ok.sum()))
+    tr = transform_json(Hm, rms, int(ok.sum()))
     tr["kind"] = kind
     return Detection(
         image=name, camera=cam.name, width=sc.width, height=sc.height, dpi=float(dpi),

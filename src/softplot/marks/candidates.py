@@ -1,0 +1,136 @@
+"""Stage 2 of the reseau path: candidate crosses, NCC peaks on the overview.
+
+:func:`reseau_candidates` correlates the overview with a cross template rendered from the
+certificate at the overview's scale (:func:`softplot.marks.coarse.ncc_map`, in strips of
+rows) and keeps the peaks of each admissible sign (bright crosses +1, dark -1), with the most
+a lattice of that polarity can score. :func:`search_map` finds the best correlation near given
+points (the prediction stage's local search). The hand-over is :class:`Candidates`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softplot.marks import coarse
+from softplot.marks.common import polarity_signs
+from softplot.marks.overview import ReseauOverview
+from softplot.marks.template import MarkShape, cross_shape
+
+__all__ = ["Candidates", "reseau_candidates", "crosses_in", "search_map"]
+
+
+@dataclass
+class Candidates:
+    """NCC candidates of the crosses (hand-over of :func:`reseau_candidates`).
+
+    Attributes
+    ----------
+    ncc : (h, w) ndarray
+        Normalised cross-correlation map; ``ncc[i, j]`` is the correlation of the template
+        centred on overview pixel ``(x, y) = (j + half, i + half)`` (overview pixel system).
+    half : int
+        Offset of the map in the overview (the template's half size, overview px).
+    peaks : dict
+        Sign (+1 bright crosses, -1 dark) -> :class:`softplot.marks.coarse.Peaks` (``xy`` (K, 2)
+        overview pixel system, ``score`` (K,) correlation); only signs with 4 peaks or more.
+    bound : dict
+        Sign -> the highest score a lattice of that sign's peaks can reach (the sum of the
+        best peaks, one per cross the scan can hold).
+    template : MarkShape
+        The cross template at the overview's scale (overview px).
+    """
+
+    ncc: np.ndarray
+    half: int
+    peaks: dict
+    bound: dict
+    template: MarkShape
+
+
+def crosses_in(scan, res, px_per_mm: float) -> int:
+    """The most crosses of the reseau ``res`` a scan can hold at ``px_per_mm`` (either way
+    round): a part of the grid shows fewer than the certificate's."""
+    lx, ly = res.pitch_x * px_per_mm, res.pitch_y * px_per_mm
+    n = max((scan.width / lx + 2) * (scan.height / ly + 2),
+            (scan.height / lx + 2) * (scan.width / ly + 2))
+    return int(min(res.count, n))
+
+
+def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
+                      s_full: float) -> Candidates:
+    """NCC peaks of ``camera``'s crosses on the overview ``ov`` for each sign ``polarity``
+    admits ("auto", "positive", "negative"); ``s_full`` the expected blur sigma
+    (full-resolution px)."""
+    res = camera.reseau
+    f, px_per_mm = ov.factor, ov.px_per_mm
+    shape_ov = cross_shape(camera, px_per_mm / f)
+    s_ov = float(np.hypot(s_full / f, 0.5))
+    arm_half = min(0.5 * shape_ov.length, max(6.0, 3.0 * shape_ov.width))
+    R, h = coarse.ncc_map(ov.image, shape_ov, s_ov, arm_half=arm_half)
+    noise_floor = 2e-3
+    pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
+    # the crosses the scan can hold at most (a part of the grid shows fewer than the
+    # certificate's): the number of candidates kept and the polarity's bound follow it
+    n_in = crosses_in(scan, res, px_per_mm)
+    peaks, bound = {}, {}
+    for sg in polarity_signs(polarity):
+        pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
+                               threshold=0.2,
+                               max_peaks=3 * n_in + 100, sign=sg, image=ov.image,
+                               std_half=max(int(arm_half), 2), min_contrast=noise_floor)
+        if len(pk) < 4:
+            continue
+        # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
+        # sum of the ``count`` best ones (with a margin for the order of summation)
+        peaks[sg] = pk
+        bound[sg] = float(np.sort(pk.score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
+    return Candidates(ncc=R, half=h, peaks=peaks, bound=bound, template=shape_ov)
+
+
+def search_map(R, h, sign, xy_ov, radius):
+    """Best NCC position of ``sign`` within ``radius`` (overview px) of each point.
+
+    ``R``/``h`` an NCC map and its offset (:class:`Candidates`), ``xy_ov`` (N, 2) overview
+    pixel system. Returns the positions (N, 2) (overview px, parabola-refined; NaN where the
+    disk holds no map value) and the correlation there (N,) (times ``sign``; -inf for none).
+    """
+    n = len(xy_ov)
+    out = np.full((n, 2), np.nan)
+    val = np.full(n, -np.inf)
+    if R.size == 0:
+        return out, val
+    r = max(int(np.ceil(radius)), 1)
+    ar = np.arange(-r, r + 1)
+    ci = np.round(xy_ov[:, 0] - h).astype(int)
+    cj = np.round(xy_ov[:, 1] - h).astype(int)
+    ii = cj[:, None] + ar[None, :]
+    jj = ci[:, None] + ar[None, :]
+    Hh, W = R.shape
+    vi = (ii >= 0) & (ii < Hh)
+    vj = (jj >= 0) & (jj < W)
+    sub = sign * R[np.clip(ii, 0, Hh - 1)[:, :, None], np.clip(jj, 0, W - 1)[:, None, :]]
+    disk = (ar[:, None] ** 2 + ar[None, :] ** 2) <= r * r
+    ok = vi[:, :, None] & vj[:, None, :] & disk[None]
+    sub = np.where(ok, sub, -np.inf)
+    flat = sub.reshape(n, -1).argmax(1)
+    a, b = np.unravel_index(flat, sub.shape[1:])
+    val = sub[np.arange(n), a, b]
+    # parabola refinement
+    def nb(da, db):
+        aa = np.clip(a + da, 0, 2 * r)
+        bb = np.clip(b + db, 0, 2 * r)
+        v = sub[np.arange(n), aa, bb]
+        return np.where(np.isfinite(v), v, val)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dxd = nb(0, -1) - 2 * val + nb(0, 1)
+        dyd = nb(-1, 0) - 2 * val + nb(1, 0)
+        dx = np.where(dxd < 0, 0.5 * (nb(0, -1) - nb(0, 1)) / dxd, 0.0)
+        dy = np.where(dyd < 0, 0.5 * (nb(-1, 0) - nb(1, 0)) / dyd, 0.0)
+    dx = np.clip(np.nan_to_num(dx), -0.5, 0.5)
+    dy = np.clip(np.nan_to_num(dy), -0.5, 0.5)
+    good = np.isfinite(val)
+    out[good, 0] = (jj[np.arange(n), b] + dx + h)[good]
+    out[good, 1] = (ii[np.arange(n), a] + dy + h)[good]
+    return out, val

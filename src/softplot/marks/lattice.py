@@ -1,0 +1,236 @@
+"""Stage 3 of the reseau path: the lattice of candidates and the crosses' identification.
+
+:func:`fit_lattice` fits the certificate's grid to the candidates of each polarity
+(:func:`softplot.marks.grid.fit_grid`: lattice scale/rotation/phase, row/col assignment from
+the format's edges the overview shows (:func:`frame_evidence`), projective film -> pixel model
+by RANSAC); the better polarity is the scan's. :func:`turn_template` repeats the correlation
+with the template turned like the grid when the grid is turned by more than 2 degrees.
+:func:`estimate_dpi` gives the scan's resolution from a lattice fitted with a free scale. The
+hand-over is :class:`Lattice`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softplot.marks import coarse, grid
+from softplot.marks.candidates import Candidates, crosses_in
+from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs
+from softplot.marks.overview import ReseauOverview, reseau_overview
+from softplot.marks.template import cross_shape
+
+__all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
+           "FRAME_STEP", "SCALE_TOL"]
+
+#: the step of grey (over the scan's range) that a film format's edge shows at least
+FRAME_STEP = 0.25
+#: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
+#: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
+SCALE_TOL = 0.03
+
+
+@dataclass
+class Lattice:
+    """The crosses found on a lattice (hand-over of :func:`fit_lattice`).
+
+    Attributes
+    ----------
+    grid : softplot.marks.grid.GridFit
+        ``H`` (3, 3) film mm -> full-resolution pixel system; ``index`` (K,) the peaks
+        assigned to crosses, ``node`` (K,) their cross indices (row-major, as
+        :meth:`softplot.camera.Reseau.film`); scale (px/mm), rotation (degrees), score.
+    sign : int
+        The crosses' polarity: +1 bright (a negative), -1 dark (a positive).
+    peaks : softplot.marks.coarse.Peaks
+        The peaks the lattice was fitted to, ``xy`` (P, 2) overview pixel system.
+    ncc : (h, w) ndarray
+        The NCC map the peaks come from (overview pixel system offset by ``half``, as
+        :class:`~softplot.marks.candidates.Candidates`).
+    half : int
+        The map's offset (overview px).
+    factor : int
+        The overview's reduction factor.
+    """
+
+    grid: grid.GridFit
+    sign: int
+    peaks: coarse.Peaks
+    ncc: np.ndarray
+    half: int
+    factor: int
+
+    def assigned_xy(self) -> np.ndarray:
+        """The assigned peaks (K, 2), full-resolution pixel system (order of ``grid.node``)."""
+        return coarse.ov_to_full(self.peaks.xy[self.grid.index], self.factor)
+
+
+def frame_evidence(ov, f: int, ppm: float):
+    """The evidence of a film format's edge in the overview, for :func:`grid.fit_grid`.
+
+    ``ov`` the overview (overview pixel system, reduction ``f``), ``ppm`` full-resolution px
+    per mm. Returns a function of format corners (K, 4, 2) (full-resolution pixel system;
+    top-left, top-right, bottom-right, bottom-left) giving, per quadrilateral, the sum over
+    its edges that lie in the scan of the step of grey across the edge (median of inside minus
+    outside, 0.3 mm either side, along the edge, over the overview's grey range 5-95 %: near 1
+    for the unexposed border of a film, small for scene content) less :data:`FRAME_STEP`,
+    over 4: a shift that puts more of the format's edges on real steps wins, one that puts an
+    edge on scene content loses. Edges outside the scan are left out.
+    """
+    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    Hh, W = g.shape
+    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
+    lo, hi = np.percentile(sub, [5, 95])
+    rng = max(float(hi - lo), 1e-6)
+    d = max(2.0, 0.3 * ppm / f)
+
+    def sample(p):
+        x = np.round((p[..., 0] + 0.5) / f - 0.5).astype(int)
+        y = np.round((p[..., 1] + 0.5) / f - 0.5).astype(int)
+        ok = (x >= 0) & (x < W) & (y >= 0) & (y < Hh)
+        return np.where(ok, g[np.clip(y, 0, Hh - 1), np.clip(x, 0, W - 1)], np.nan), ok
+
+    def clip(a, b, pad):
+        """Parameters [t0, t1] of the part of segments a -> b (K, 2) within the scan less
+        ``pad`` px (Liang-Barsky), from [0.05, 0.95]; t1 <= t0 where none is."""
+        t0, t1 = np.full(len(a), 0.05), np.full(len(a), 0.95)
+        dd = b - a
+        lim = ((0, pad, W * f - 1 - pad), (1, pad, Hh * f - 1 - pad))
+        for k, lo_, hi_ in lim:
+            for pk, qk in ((-dd[:, k], a[:, k] - lo_), (dd[:, k], hi_ - a[:, k])):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = qk / pk
+                t0 = np.where(pk < 0, np.maximum(t0, t), t0)
+                t1 = np.where(pk > 0, np.minimum(t1, t), t1)
+                t1 = np.where((pk == 0) & (qk < 0), -1.0, t1)
+        return t0, t1
+
+    def evidence(corners):
+        corners = np.asarray(corners, float).reshape(-1, 4, 2)
+        c = corners.mean(1)  # (K, 2)
+        total = np.zeros(len(corners))
+        for e in range(4):  # every shift at once, edge by edge
+            a, b = corners[:, e], corners[:, (e + 1) % 4]
+            tang = (b - a) / np.maximum(np.hypot(*(b - a).T), 1e-9)[:, None]
+            n = np.stack([tang[:, 1], -tang[:, 0]], 1)
+            n *= np.where(np.sum(n * (0.5 * (a + b) - c), 1) < 0, -1.0, 1.0)[:, None]  # out
+            # the part of the edge in the scan, both samples inside: at least 36 overview px
+            # of it (edges outside the scan are left out), sampled at 200 points
+            t0, t1 = clip(a, b, d * f + f)
+            use = np.where((t1 - t0) * np.hypot(*(b - a).T) >= 36.0 * f)[0]
+            if use.size == 0:
+                continue
+            t = t0[use, None] + (t1 - t0)[use, None] * np.linspace(0.0, 1.0, 200)[None, :]
+            p = a[use, None, :] + t[..., None] * (b - a)[use, None, :]  # (U, 200, 2)
+            gi, _ = sample(p - n[use, None, :] * d * f)
+            go, _ = sample(p + n[use, None, :] * d * f)
+            total[use] += np.abs(np.median(gi - go, 1)) / rng - FRAME_STEP
+        return np.clip(total / 4.0, -1.0, 1.0)
+
+    return evidence
+
+
+def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: str,
+                rotate_deg: float, part=None) -> Lattice | None:
+    """The certificate's grid fitted to the candidates of each sign ``polarity`` admits; the
+    best-scoring fit (the first sign on a tie), or None when no sign gives a lattice.
+
+    ``rotate_deg``: the pixel-system angle of film +x expected (degrees); ``part``: the part
+    of the grid the scan shows when the user gives it ((col0, col1, row0, row1) or None).
+    A sign whose :attr:`Candidates.bound` cannot beat a fit already made is not fitted.
+    """
+    res = camera.reseau
+    f, px_per_mm = ov.factor, ov.px_per_mm
+    # fit the polarity that can score most first; another one only if it could still win
+    fits = {}
+    for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
+        pk, bound = cands.peaks[sg], cands.bound[sg]
+        done = [g.score for g in fits.values() if g is not None]
+        if done and bound < max(done):
+            continue
+        xy = coarse.ov_to_full(pk.xy, f)
+        fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
+                                 px_per_mm=px_per_mm, rotate_deg=rotate_deg,
+                                 margin_px=0.5 * cands.template.length * f,
+                                 frame_evidence=frame_evidence(ov.image, f, px_per_mm),
+                                 format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
+    best = None
+    for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
+        g = fits.get(sg)
+        if g is not None and (best is None or g.score > best.grid.score):
+            best = Lattice(grid=g, sign=sg, peaks=cands.peaks[sg], ncc=cands.ncc,
+                           half=cands.half, factor=f)
+    return best
+
+
+def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: float,
+                  blur_px: float, part=None) -> Lattice:
+    """``lat`` again from a correlation with the template turned like its grid, when the grid
+    is turned by more than 2 degrees from ``rotate_deg`` (pixel-system degrees); the new
+    lattice replaces ``lat`` when it assigns as many crosses or more."""
+    g = lat.grid
+    if abs((g.rotation_deg - rotate_deg + 180.0) % 360.0 - 180.0) <= 2.0:
+        return lat
+    res = camera.reseau
+    f, ppm = ov.factor, ov.px_per_mm
+    shape = cross_shape(camera, ppm)
+    J = grid.h_jacobian(g.H, np.zeros((1, 2)))[0] / ppm
+    A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
+    shape_ov = cross_shape(camera, ppm / f)
+    R2, h2 = coarse.ncc_map(ov.image, shape_ov, float(np.hypot(blur_px / f, 0.5)), A=A_ov,
+                            arm_half=min(0.5 * shape_ov.length, 10.0))
+    pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
+                                                          0.5 * shape_ov.length)),
+                            threshold=0.2, max_peaks=3 * crosses_in(scan, res, ppm) + 100,
+                            sign=lat.sign)
+    g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
+                       (scan.width, scan.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
+                       margin_px=0.5 * shape.length, max_rotation_deg=3.0,
+                       frame_evidence=frame_evidence(ov.image, f, ppm),
+                       format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
+    if g2 is not None and len(g2.node) >= len(g.node):
+        return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f)
+    return lat
+
+
+def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> float:
+    """The scan's resolution (dpi) from a lattice of its crosses fitted with a free scale.
+
+    A first guess from the scan's size (it holds the format), then candidate scales from the
+    peaks' spacing; the best-scoring lattice gives the scale. A
+    :class:`~softplot.marks.common.DetectionError` when no regular grid is found.
+    """
+    res = camera.reseau
+    guess = 25.4 * min(scan.width / camera.format_mm[0], scan.height / camera.format_mm[1])
+    ppm = guess / MM_PER_INCH
+    ov = reseau_overview(scan, res.line_width_mm * ppm, ppm, name)
+    f = ov.factor
+    # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi
+    shape_ov = cross_shape(camera, ppm / f)
+    R, h = coarse.ncc_map(ov.image, shape_ov, 0.7, arm_half=min(0.5 * shape_ov.length, 6.0))
+    pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.3 * min(res.pitch_x, res.pitch_y)
+                                              * ppm / f),
+                           threshold=0.25, max_peaks=3 * res.count + 100)
+    best_g = None
+    pmin = min(res.pitch_x, res.pitch_y)
+    for sg in polarity_signs(polarity):
+        q = pk.select(pk.sign == sg)
+        xy = coarse.ov_to_full(q.xy, f)
+        # candidate scales: the size-based guess (the scan may show more than the format)
+        # and the most frequent neighbour spacing of the strongest peaks (or its double,
+        # when peaks also sit half-way between crosses)
+        cands = [ppm, 0.9 * ppm, 0.8 * ppm]
+        sp = grid.estimate_spacing(xy[np.argsort(-q.score)[: max(int(1.5 * res.count), 8)]])
+        if sp is not None:
+            cands += [sp / pmin, 2.0 * sp / pmin]
+        for k in cands:
+            g0 = grid.fit_grid(xy, q.score, res, (scan.width, scan.height), px_per_mm=k,
+                               rotate_deg=rotate_deg)
+            if g0 is not None and (best_g is None or g0.score > best_g.score):
+                best_g = g0
+    if best_g is None or len(best_g.node) < max(4, 0.2 * res.count):
+        raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
+                             f"found (expected {res.rows}x{res.cols} crosses at "
+                             f"{res.pitch_x} mm); give --dpi")
+    return best_g.px_per_mm * MM_PER_INCH
