@@ -222,8 +222,18 @@ def _phase_histograms(d, w, lx, ly, thetas):
     return Hs + np.roll(Hs, -1, 2)
 
 
-def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
-    """Rotation and phase of the lattice of pitch ``lx`` x ``ly`` px that most candidate
+#: a peak agrees with a lattice within this (film mm, at least 3 px): the coarse peaks'
+#: error and the film's deformation from an affine lattice; a lattice through clutter
+#: rarely meets it at many nodes
+AGREE_MM = 0.15
+#: phase-histogram maxima of :func:`_lattice_search` tried as lattices: a small grid's crosses
+#: pile up no higher than clutter does by chance, the consensus of :func:`find_lattice` decides
+HYPOTHESES = 24
+
+
+def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square,
+                    k=HYPOTHESES):
+    """Rotations and phases of the lattice of pitch ``lx`` x ``ly`` px that most candidate
     peaks lie on.
 
     For every rotation within ``max_rotation_deg`` of ``rotate_deg`` (pixel system, degrees;
@@ -231,14 +241,16 @@ def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
     lattice coordinates modulo one pitch) are histogrammed, weighted by their scores: on the
     reseau's rotation its crosses pile up in one cell of an eighth of a pitch, where clutter
     (scene features, JPEG block corners, grain, noise over flat regions) spreads over all
-    phases. The step of the rotations keeps the farthest peak within a tenth of a pitch;
-    the best one is refined five times finer. The spacing is never searched: it is the
-    certificate's at the given dpi. Returns (theta radians, p0 (2,) a pixel position of a
-    lattice node) or None.
+    phases. The step of the rotations keeps the farthest peak within a tenth of a pitch.
+    The ``k`` highest cells (apart by more than a step of rotation or a cell of phase) are
+    refined five times finer in rotation. The spacing is never searched: it is the
+    certificate's at the given dpi. Returns a list of (theta radians, p0 (2,) a pixel
+    position of a lattice node, peaks in the cell), the highest cell first (empty when none
+    is found).
     """
     M = len(xy)
     if M < 3:
-        return None
+        return []
     top = np.argsort(-score)[: min(M, 4000)]
     xy, score = xy[top], score[top]
     w = np.maximum(score, 0.0)
@@ -248,23 +260,63 @@ def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
     step = min(0.1 / extent, np.radians(0.5))
     half = np.radians(min(max_rotation_deg, 44.9 if square else 89.9))
     n = int(np.ceil(half / step))
-    base = np.radians(rotate_deg)
-    thetas = base + np.arange(-n, n + 1) * step
-    best = None
-    for _ in range(2):
-        out = []
-        chunk = max(1, 2_000_000 // len(d))  # angles at a time: bounded work arrays
-        for k in range(0, len(thetas), chunk):
-            out.append(_phase_histograms(d, w, lx, ly, thetas[k: k + chunk]))
-        Hs = np.concatenate(out)
-        flat = Hs.reshape(len(thetas), -1)
-        a = int(np.argmax(flat.max(1)))
-        best = (thetas[a], Hs[a])
-        thetas = thetas[a] + np.linspace(-step, step, 11)
-        step = step / 5
-    theta, Hb = best
-    bu, bv = np.unravel_index(int(np.argmax(Hb)), Hb.shape)
-    # the phase: circular mean of the peaks in that 2 x 2 cell (bin units)
+    thetas = np.radians(rotate_deg) + np.arange(-n, n + 1) * step
+    Hs = _histograms(d, w, lx, ly, thetas)
+    out = []
+    for a, cell in _top_cells(Hs, k):
+        # five times finer around it, the highest cell within a bin of it
+        fine = thetas[a] + np.linspace(-step, step, 11)
+        Hf = _histograms(d, w, lx, ly, fine)
+        nb = PHASE_BINS
+        near = np.zeros((nb, nb), bool)
+        for du in (-1, 0, 1):
+            for dv in (-1, 0, 1):
+                near[(cell[0] + du) % nb, (cell[1] + dv) % nb] = True
+        af = int(np.argmax(np.where(near[None], Hf, -np.inf).reshape(len(fine), -1).max(1)))
+        Hb = np.where(near, Hf[af], -np.inf)
+        bu, bv = np.unravel_index(int(np.argmax(Hb)), Hb.shape)
+        got = _phase_node(d, w, lx, ly, float(fine[af]), bu, bv)
+        if got is not None:
+            out.append((float(fine[af]), c + got[0], got[1]))
+    return out
+
+
+def _histograms(d, w, lx, ly, thetas):
+    """:func:`_phase_histograms` of every rotation of ``thetas``, a few at a time (bounded
+    work arrays): (A, PHASE_BINS, PHASE_BINS)."""
+    chunk = max(1, 2_000_000 // max(len(d), 1))
+    return np.concatenate([_phase_histograms(d, w, lx, ly, thetas[k: k + chunk])
+                           for k in range(0, len(thetas), chunk)])
+
+
+def _top_cells(Hs, k):
+    """The ``k`` highest (rotation index, (bin u, bin v)) of the histograms ``Hs``
+    (A, nb, nb), each apart from the ones before by more than one rotation step or one
+    bin of phase (circularly): the highest first."""
+    nb = Hs.shape[1]
+    flat = Hs.ravel()
+    order = np.argsort(-flat, kind="stable")[: max(64 * k, 256)]
+    picked = []
+    for f in order:
+        a, u, v = np.unravel_index(int(f), Hs.shape)
+        close = False
+        for a2, (u2, v2) in picked:
+            du = min(abs(u - u2), nb - abs(u - u2))
+            dv = min(abs(v - v2), nb - abs(v - v2))
+            if abs(a - a2) <= 1 and du <= 1 and dv <= 1:
+                close = True
+                break
+        if not close:
+            picked.append((int(a), (int(u), int(v))))
+            if len(picked) == k:
+                break
+    return picked
+
+
+def _phase_node(d, w, lx, ly, theta, bu, bv):
+    """A lattice node (pixel offset like ``d``) of the lattice turned by ``theta`` whose
+    phase lies in the 2 x 2 cell of bins from (bu, bv): the circular mean of the phases of
+    the peaks in it, and their number. None when fewer than 2 peaks are there."""
     nb = PHASE_BINS
     ct, st = np.cos(theta), np.sin(theta)
     u = (d[:, 0] * ct + d[:, 1] * st) / lx
@@ -278,7 +330,7 @@ def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square):
     pu = cu + float(np.average(du[near], weights=w[near] + 1e-12))
     pv = cv + float(np.average(dv[near], weights=w[near] + 1e-12))
     B = np.array([[lx * ct, -ly * st], [lx * st, ly * ct]])
-    return float(theta), c + B @ np.array([pu, pv])
+    return B @ np.array([pu, pv]), int(near.sum())
 
 
 @dataclass
@@ -420,11 +472,14 @@ def _best_per_node(idx, sel, key_val):
 def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
                  max_rotation_deg=20.0, scale_tol=None) -> Lattice | None:
     """The affine lattice of the reseau's pitch through the candidate peaks ``xy`` (M, 2)
-    (pixel system) with scores ``score`` (M,): rotation and phase by
-    :func:`_lattice_search`, an affine refinement on the peaks within a fifth of a pitch of
-    a node, a robust (least median of squares) lattice through triplets of nodes, and per
-    node the peak closest to it. Arguments as :func:`fit_grid`'s; None when fewer than 3
-    peaks lie on any lattice."""
+    (pixel system) with scores ``score`` (M,).
+
+    Rotations and phases are proposed by :func:`_lattice_search`; each is refined
+    (:func:`_lattice_at`: an affine lattice on the peaks within a fifth of a pitch of a
+    node, a robust lattice through triplets of nodes, per node the peak closest to it) and
+    the one most peaks agree with (within :data:`AGREE_MM` of a node; among equals the one
+    nearer ``rotate_deg``, then the one they lie closer to) is kept. Arguments as
+    :func:`fit_grid`'s; None when fewer than 3 peaks lie on any lattice."""
     M = len(xy)
     if M < 4:
         return None
@@ -436,19 +491,34 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
             return None
         px_per_mm = sp / min(px, py)
     lx, ly = px * px_per_mm, py * px_per_mm
-
     square = abs(lx - ly) < 0.08 * min(lx, ly)
-    found = _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square)
-    if found is None:
-        return None
-    theta, p0_phase = found
+    best, best_key = None, None
+    for theta, p0, n_cell in _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg,
+                                             square):
+        if best_key is not None and 1.5 * n_cell + 3 < best_key[0]:
+            continue  # too few peaks in its cell to gather as many as the best lattice
+        got = _lattice_at(xy, score, theta, p0, lx, ly, min(px, py), scale_tol)
+        if got is None:
+            continue
+        p0, Bc, idx, cand, (n_agree, med) = got
+        # among equals the lattice nearer the stated turn (in steps of 5 degrees), then the
+        # one its peaks lie closer to
+        turn = np.degrees(np.arctan2(Bc[1, 0], Bc[0, 0])) - rotate_deg
+        key = (n_agree, -round(abs((turn + 180.0) % 360.0 - 180.0) / 5.0), -med)
+        if best_key is None or key > best_key:
+            best = Lattice(p0=p0, B=Bc, idx=idx, cand=cand, px_per_mm=float(px_per_mm))
+            best_key = key
+    return best
+
+
+def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
+    """The lattice near rotation ``theta`` (radians) through node ``p0`` (pixel system):
+    (p0, B, idx, cand, (agreeing peaks, their median distance px)), the first four as
+    :class:`Lattice` holds them, or None when fewer than 3 peaks lie on it."""
     c, s = np.cos(theta), np.sin(theta)
     # lattice basis in pixels: +1 column, +1 row (row goes down the film = film -y)
-    B = np.array([[lx * c, -ly * s], [lx * s, ly * c]])
-
-    # affine lattice refinement: p = p0 + B @ (i, j)
-    p0 = p0_phase.copy()
-    Bc = B.copy()
+    Bc = np.array([[lx * c, -ly * s], [lx * s, ly * c]])
+    p0 = np.asarray(p0, float).copy()
     # tolerances in lattice units: a fifth of a pitch to start, then at most ~0.5 mm (film
     # deformation and scanner non-linearity stay far below; coarse grids with 20 mm pitches
     # would otherwise admit scene peaks several millimetres off)
@@ -468,9 +538,10 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
     f = (xy - p0) @ np.linalg.inv(Bc).T
     idx = np.round(f).astype(int)
     inl = np.abs(f - idx).max(1) < tol
-    t_fine = min(0.2, 0.5 / min(px, py))
+    t_fine = min(0.2, 0.5 / pmin)
+    t_agree = min(t_fine, AGREE_MM / pmin)
     p0, Bc, lim_px = _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine,
-                                     scale_tol)
+                                     t_agree, scale_tol)
     # every peak against the robust lattice; per node the closest peak within the limit
     for _ in range(2):
         pred_all = p0 + idx @ Bc.T
@@ -483,41 +554,61 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
         if not _scale_ok(sol[1:].T, lx, ly, scale_tol):
             break
         p0, Bc = sol[0], sol[1:].T
-    return Lattice(p0=p0, B=Bc, idx=idx, cand=cand, px_per_mm=float(px_per_mm))
+    dev = np.hypot(*(xy[cand] - p0 - idx[cand] @ Bc.T).T)
+    agree = dev < max(t_agree * float(np.sqrt(abs(np.linalg.det(Bc)))), 3.0)
+    return p0, Bc, idx, cand, (int(agree.sum()), float(np.median(dev[agree]))
+                               if agree.any() else np.inf)
 
 
-def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, scale_tol):
-    """Least median of squares over exact affine lattices through triplets of nodes (their
-    best-scoring peaks among ``inl``; all triplets for a few nodes, 300 random ones
-    otherwise): robust to scene peaks that fell near a node. Returns (p0, B, lim_px): the
-    lattice (the given one when no triplet fits) and the distance (px) within which a peak
-    belongs to a node, max(t_fine pitches, 4 robust sigmas)."""
-    ii = _best_per_node(idx, np.where(inl)[0], -score)
+def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, scale_tol):
+    """The lattice most nodes agree with, over exact affine lattices through triplets of
+    peaks on three nodes (among ``inl``, the peaks within ``tol`` pitches of a node: all
+    triplets for a few peaks, 300 random ones otherwise).
+
+    A node agrees when one of its peaks lies within :data:`AGREE_MM` (``t_agree`` pitches,
+    at least 3 px) of the lattice; among lattices with as many the smallest median of those
+    residuals wins. Every peak near a node takes part, not only the best-scoring one: on a
+    small grid clutter near a node often scores higher than the cross, and outnumbers the
+    crosses (a least median of squares would be clutter's there). Returns (p0, B, lim_px):
+    the lattice (the given one when no triplet fits) and the distance (px) within which a
+    peak belongs to a node, max(t_fine pitches, 4 robust sigmas)."""
     pitch_px = float(np.sqrt(abs(np.linalg.det(Bc))))
     lim_px = tol * pitch_px
-    if len(ii) < 4:
+    pts = np.where(inl)[0]
+    if len(pts) > 400:  # the best-scoring ones: the work stays bounded
+        pts = pts[np.argsort(-score[pts], kind="stable")[:400]]
+    key = idx[pts, 0].astype(np.int64) * (1 << 32) + idx[pts, 1]
+    pts = pts[np.argsort(key, kind="stable")]  # grouped by node
+    key = np.sort(key, kind="stable")
+    nodes, start = np.unique(key, return_index=True)
+    if len(nodes) < 4:
         return p0, Bc, lim_px
     from itertools import combinations
 
     rng = np.random.default_rng(0)
-    if len(ii) <= 22:
-        tri = np.array(list(combinations(range(len(ii)), 3)))
+    if len(pts) <= 40:
+        tri = np.array(list(combinations(range(len(pts)), 3)))
     else:
-        tri = _random_triplets(rng, len(ii), 300)
-    Mi = np.concatenate([np.ones((len(ii), 1)), idx[ii]], 1)  # (n, 3)
-    A3 = Mi[tri]  # (T, 3, 3)
+        tri = _random_triplets(rng, len(pts), 300 if len(nodes) > 22 else 2000)
+    Mi = np.concatenate([np.ones((len(pts), 1)), idx[pts]], 1)  # (P, 3)
+    A3 = Mi[tri]  # (T, 3, 3); peaks on one node or on a line of nodes: singular
     ok = np.abs(np.linalg.det(A3)) > 1e-9
-    sol = np.linalg.solve(A3[ok], xy[ii][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
+    sol = np.linalg.solve(A3[ok], xy[pts][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
     if scale_tol is not None and len(sol):
         # exact lattices through three nodes at another spacing are not the reseau
         nb = np.hypot(sol[:, 1:, 0], sol[:, 1:, 1]) / np.array([lx, ly])
         sol = sol[np.all(np.abs(nb - 1.0) <= scale_tol, 1)]
     if len(sol):
-        # residuals of every node against every triplet's lattice, one coordinate at a
-        # time (two (T, 3) @ (3, n) products)
-        res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[ii, 0], sol[:, :, 1] @ Mi.T - xy[ii, 1])
-        med = np.median(res_px, axis=1)
-        best = int(np.argmin(med))
+        # residuals of every peak against every triplet's lattice, one coordinate at a
+        # time (two (T, 3) @ (3, P) products); per node its closest peak
+        res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[pts, 0], sol[:, :, 1] @ Mi.T - xy[pts, 1])
+        per_node = np.minimum.reduceat(res_px, start, axis=1)
+        agree = per_node < max(t_agree * pitch_px, 3.0)
+        n_agree = agree.sum(1)
+        # the (lower) median of the agreeing nodes' residuals
+        srt = np.sort(np.where(agree, per_node, np.inf), axis=1)
+        med = srt[np.arange(len(sol)), np.maximum(n_agree - 1, 0) // 2]
+        best = int(np.lexsort((med, -n_agree))[0])
         lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
         p0, Bc = sol[best][0], sol[best][1:].T
     return p0, Bc, lim_px
