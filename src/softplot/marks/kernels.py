@@ -28,7 +28,7 @@ import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model", "load", "ready"]
+__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -200,6 +200,176 @@ def cross_model(p, data, shape):
     return M, T, Tu, Tv, u, v, J
 
 
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss):
+    # (fastmath: the order of the float64 sums is free; the MAD's element is picked exactly)
+    n, npx = X.shape
+    K = J.shape[2]
+    buf = np.empty(npx, np.float32)
+    gg = np.empty(K)
+    for i in range(n):
+        # residuals, censoring (a grey value at the end of the range that the model passes
+        # carries nothing), the MAD of the valid residuals and the mean background
+        nv = 0
+        sbg = 0.0
+        for j in range(npx):
+            if valid[i, j]:
+                r = G[i, j] - M[i, j]
+                c = Cc[i, j]
+                if (c > 0 and M[i, j] >= G[i, j]) or (c < 0 and M[i, j] <= G[i, j]):
+                    r = _ZERO
+                R[i, j] = r
+                buf[nv] = abs(r)
+                nv += 1
+                sbg += S[i, j] + q[i, 9] * X[i, j] + q[i, 10] * Y[i, j] + q[i, 11] * Qs[i, j]
+            else:
+                R[i, j] = _ZERO
+        inv_c = 0.0
+        if robust:
+            med = 0.0
+            if nv > 0:
+                med = float(np.partition(buf[:nv], nv // 2)[nv // 2])
+            scale = max(1.4826 * med, 1e-9)
+            contrast = pb[i] - sbg / max(float(nv), 1e-6)
+            scale = max(scale, 0.01 * abs(contrast) + 1e-4)
+            inv_c = 1.0 / (4.685 * scale)
+        for a in range(K):
+            gg[a] = 0.0
+        ss = 0.0
+        for j in range(npx):
+            if not valid[i, j]:
+                WR[i, j] = _ZERO
+                W[i, j] = _ZERO
+                for a in range(K):
+                    J[i, j, a] = _ZERO
+                continue
+            r = R[i, j]
+            if robust:
+                t = r * inv_c
+                wr = _f4((1.0 - t * t) ** 2) if abs(t) < 1.0 else _ZERO
+            else:
+                wr = _ONE
+            WR[i, j] = wr
+            c = Cc[i, j]
+            cens = (c > 0 and M[i, j] >= G[i, j]) or (c < 0 and M[i, j] <= G[i, j])
+            w = _ZERO if cens else wr * Wp[i, j]
+            W[i, j] = w
+            sw = np.sqrt(w)
+            swr = float(sw * r)
+            ss += float(w * r * r)
+            for a in range(K):
+                ja = J[i, j, a] * sw
+                J[i, j, a] = ja
+                gg[a] += ja * swr
+        for a in range(K):
+            g[i, a] = gg[a]
+        rss[i] = ss
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _influence(Ninv2, J, h):
+    n, npx, K = J.shape
+    for i in range(n):
+        for j in range(npx):
+            h0 = _ZERO
+            h1 = _ZERO
+            for a in range(K):
+                h0 += Ninv2[i, 0, a] * J[i, j, a]
+                h1 += Ninv2[i, 1, a] * J[i, j, a]
+            h[i, 0, j] = h0
+            h[i, 1, j] = h1
+
+
+def weigh(p, data, M, J, robust):
+    """The rest of one LSM step over N crosses in one compiled pass: residuals (censored
+    grey values zeroed), robust weights (Tukey's biweight on the residuals over their scale,
+    ``lsm._scale``; 1 without ``robust``), the pixel weights ``w`` (robust x prior, 0 where
+    censored) and the weighted normal equations (float64) with ``J`` scaled by ``sqrt(w)`` in
+    place -- what ``lsm._step`` and ``lsm._normal`` compute with NumPy, to float32 rounding.
+
+    ``data`` is lsm's gathered tuple; ``M`` (N, P) the model, ``J`` (N, P, 12) its Jacobian
+    (both from :func:`cross_model`). Returns ``(r, w_rob, w, Nm, g, wrr)``: (N, P) float32
+    each, then (N, 12, 12), (N, 12) and (N,) float64 (``wrr`` = Sum w r^2); no parameter
+    pinned.
+    """
+    X, Y, G, valid, S, Wp, Qs, Cc = data
+    n, npx = X.shape
+    R, WR, W = (np.empty((n, npx), np.float32) for _ in range(3))
+    K = J.shape[2]
+    g = np.empty((n, K))
+    rss = np.empty(n)
+    q = np.ascontiguousarray(p, np.float32)
+    pb = np.ascontiguousarray(p[:, 8], np.float64)
+    c = np.ascontiguousarray
+    _weigh(c(G), c(M), c(valid), c(Wp), c(Cc), c(S), c(X), c(Y), c(Qs), q, pb, bool(robust),
+           R, WR, W, J, g, rss)
+    # J^T J by BLAS (faster than a compiled loop over the 78 products)
+    Nm = np.matmul(J.transpose(0, 2, 1), J).astype(float)
+    return R, WR, W, Nm, g, rss
+
+
+def influence(Ninv, J):
+    """The centre's influence on each weighted pixel, ``Ninv[:, 0:2, :] @ J^T`` (N, 2, P)
+    float32, ``J`` the ``sqrt(w)``-scaled Jacobian (N, P, 12) of :func:`weigh`."""
+    n, npx, _ = J.shape
+    h = np.empty((n, 2, npx), np.float32)
+    _influence(np.ascontiguousarray(Ninv[:, 0:2, :], np.float32), J, h)
+    return h
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _template(q, length, width, margin, T):
+    n, h, w = T.shape
+    hL = _HALF * length
+    hW = _HALF * width
+    for i in range(n):
+        cx, cy = q[i, 0], q[i, 1]
+        a00, a01, a10, a11 = q[i, 2], q[i, 3], q[i, 4], q[i, 5]
+        s = q[i, 6]
+        bu, mu = max(abs(a00), abs(a01)), min(abs(a00), abs(a01))
+        bv, mv = max(abs(a10), abs(a11)), min(abs(a10), abs(a11))
+        s_len = np.sqrt(s * s + _TWELFTH)
+        invL = _ONE / s_len
+        Su = np.sqrt(s * s + mu * mu * _TWELFTH)
+        Sv = np.sqrt(s * s + mv * mv * _TWELFTH)
+        invu, invv = _ONE / Su, _ONE / Sv
+        hbu, hbv = _HALF * bu, _HALF * bv
+        ibu, ibv = _ONE / bu, _ONE / bv
+        ml = hL + margin[i]
+        mw = hW + margin[i]
+        for y in range(h):
+            dy = _f4(y) - cy
+            for x in range(w):
+                dx = _f4(x) - cx
+                u = a00 * dx + a01 * dy
+                v = a10 * dx + a11 * dy
+                au, av = abs(u), abs(v)
+                if not ((au <= ml and av <= mw) or (av <= ml and au <= mw)):
+                    T[i, y, x] = _ZERO
+                    continue
+                Lu = _box(u, hL, invL)[0]
+                Lv = _box(v, hL, invL)[0]
+                Wu = _pixel_box(u, hW, hbu, invu)[0] * Su * ibu
+                Wv = _pixel_box(v, hW, hbv, invv)[0] * Sv * ibv
+                T[i, y, x] = Lu * Wv + Wu * Lv - Wu * Wv
+
+
+def cross_template(shape, origin, c, A, s, hw, margin):
+    """The blurred cross ``T`` (N, h, w) float32 of N patches (pixel system: ``origin`` each
+    patch's [0, 0] pixel, centres ``c``, pixel -> mark-frame affines ``A``, blurs ``s``), as
+    :meth:`MarkShape.evaluate` with :func:`softplot.marks.template.aperture` gives it, 0
+    beyond ``margin`` (N,) px of the drawn bars (the template is below 1e-6 there)."""
+    n = len(c)
+    q = np.zeros((n, 7), np.float32)
+    # the pixels relative to the patch origin, as lsm.patch_frame computes them
+    q[:, 0:2] = (np.asarray(c, float) - origin).astype(np.float32)
+    q[:, 2:6] = np.asarray(A, np.float32).reshape(n, 4)
+    q[:, 6] = np.asarray(s, np.float32)
+    T = np.empty((n,) + tuple(hw), np.float32)
+    _template(q, _f4(shape.length), _f4(shape.width), np.asarray(margin, np.float32), T)
+    return T
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -223,8 +393,13 @@ def load() -> bool:
         p[0, 2] = p[0, 5] = 1.0
         p[0, 6] = 1.0
         try:
-            cross_model(p, (z, z, z, z > 0, z, z, z, z),
-                        MarkShape("cross", length=5.0, width=1.0))
+            data = (z, z, z, z > 0, z, z, z, z)
+            M, _, _, _, _, _, J = cross_model(p, data, MarkShape("cross", length=5.0,
+                                                                  width=1.0))
+            weigh(p, data, M, J, True)
+            influence(np.eye(12)[None], J)
+            cross_template(MarkShape("cross", length=5.0, width=1.0), np.zeros((1, 2)),
+                           np.zeros((1, 2)), np.eye(2)[None], np.ones(1), (3, 3), np.ones(1))
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path
             warnings.warn(f"softplot: compiled LSM kernel unavailable ({type(exc).__name__}: "
                           f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)

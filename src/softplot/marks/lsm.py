@@ -298,6 +298,12 @@ def _normal(J, w, r, active):
     JT = J.transpose(0, 2, 1)
     Nm = np.matmul(JT, J).astype(float)
     g = np.matmul(JT, (sw * r)[..., None])[..., 0].astype(float)
+    _pin(Nm, g, active)
+    return Nm, g
+
+
+def _pin(Nm, g, active):
+    """Inactive parameters pinned in normal equations ``Nm``, ``g`` (in place)."""
     off = ~active
     Nm[:, off, :] = 0.0
     Nm[:, :, off] = 0.0
@@ -307,7 +313,6 @@ def _normal(J, w, r, active):
     # a parameter without any data (no saturated background around this mark) is pinned
     diag = np.arange(Nm.shape[1])
     Nm[:, diag, diag] = np.where(Nm[:, diag, diag] > 0, Nm[:, diag, diag], 1.0)
-    return Nm, g
 
 
 def _step(p, data, shape, active, robust, init=False):
@@ -351,16 +356,21 @@ def _step(p, data, shape, active, robust, init=False):
     else:
         M, T, u, v, J = _assemble(p, data, geo)
         Tu, Tv = geo[1], geo[2]
-    r = np.where(valid, G - M, 0.0).astype(np.float32)
-    # censored grey values (at the end of the range): they only say "at least this bright"
-    # (or dark); consistent with a model beyond the clip they carry nothing
-    Cc = data[7]
-    cens = ((Cc > 0) & (M >= G)) | ((Cc < 0) & (M <= G))
-    r[cens] = 0.0
-    w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32))
-    w_rob *= valid
-    w = w_rob * data[5] * ~cens
-    Nm, g = _normal(J, w, r, active)
+    if jit:  # the weights and normal equations in one compiled pass too (the same sums)
+        r, w_rob, w, Nm, g, wrr = kernels.weigh(p, data, M, J, robust)
+        _pin(Nm, g, active)
+    else:
+        r = np.where(valid, G - M, 0.0).astype(np.float32)
+        # censored grey values (at the end of the range): they only say "at least this
+        # bright" (or dark); consistent with a model beyond the clip they carry nothing
+        Cc = data[7]
+        cens = ((Cc > 0) & (M >= G)) | ((Cc < 0) & (M <= G))
+        r[cens] = 0.0
+        w_rob = (_tukey(r, _scale(r, valid, p, data)) if robust else valid.astype(np.float32))
+        w_rob *= valid
+        w = w_rob * data[5] * ~cens
+        Nm, g = _normal(J, w, r, active)
+        wrr = (w * r * r).sum(1, dtype=float)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
     diag = np.arange(_NP)
     Nm[:, diag, diag] *= 1.0 + 1e-6
@@ -372,12 +382,13 @@ def _step(p, data, shape, active, robust, init=False):
         dp = np.matmul(Ninv, g[..., None])[..., 0]
     dp[~np.isfinite(dp)] = 0.0
     red = np.maximum(w.sum(1) - active.sum(), 1.0)
-    s0sq = (w * r * r).sum(1, dtype=float) / red
+    s0sq = wrr / red
     cov = Ninv[:, 0:2, 0:2] * s0sq[:, None, None]
     sig = np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0.0))
     # the centre's influence on each weighted pixel, (N, 2, P): cov = Sum h h^T s0^2 for
     # white residuals; with correlated ones see _correlated_cov (J is sqrt(w) J here)
-    h = np.matmul(Ninv[:, 0:2, :].astype(np.float32), J.transpose(0, 2, 1))
+    h = (kernels.influence(Ninv, J) if jit else
+         np.matmul(Ninv[:, 0:2, :].astype(np.float32), J.transpose(0, 2, 1)))
     state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq, Tu=Tu, Tv=Tv,
                  h=h)
     # step limits: centre 1.5 px, shape 5 %, blur within a sane range

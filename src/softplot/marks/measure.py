@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
+from softplot.marks import kernels as _kernels
 from softplot.marks import scene_tv
 from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
@@ -366,6 +367,10 @@ def _template(shape, origin, c, A, s, hw, batch=4):
     affines ``A``, blurs ``s``), evaluated a few patches at a time: the template's
     temporaries over whole chunks would double the fine stage's peak memory."""
     n = len(c)
+    if shape.kind == "cross" and _kernels.ready():  # compiled: the same values
+        margin = np.array([5.0 * float(np.max(s[a - a % batch : a - a % batch + batch])) + 1.0
+                           for a in range(n)])
+        return _kernels.cross_template(shape, origin, c, A, s, hw, margin)
     T = np.zeros((n,) + tuple(hw), np.float32)
     for a in range(0, n, batch):
         b = slice(a, a + batch)
