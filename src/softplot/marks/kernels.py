@@ -28,7 +28,7 @@ import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "load", "ready"]
+__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "corr_sums", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -370,6 +370,96 @@ def cross_template(shape, origin, c, A, s, hw, margin):
     _template(q, _f4(shape.length), _f4(shape.width), np.asarray(margin, np.float32), T)
     return T
 
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _corr_sums(ix, iy, valid, R, H, K, out):
+    n, npx = R.shape
+    L = 2 * K + 1
+    for q in range(n):
+        gh = 0
+        gw = 0
+        for j in range(npx):
+            if valid[q, j]:
+                gh = max(gh, iy[q, j] + 1)
+                gw = max(gw, ix[q, j] + 1)
+        # dense grids, zero off the valid pixels and in a border of K; each row's span of
+        # valid pixels
+        G = np.zeros((4, gh + 2 * K, gw + 2 * K), np.float32)
+        lo = np.full(gh, gw, np.int64)
+        hi = np.zeros(gh, np.int64)
+        for j in range(npx):
+            if valid[q, j]:
+                y = iy[q, j]
+                x = ix[q, j]
+                G[0, y + K, x + K] = R[q, j]
+                G[1, y + K, x + K] = _ONE
+                G[2, y + K, x + K] = H[q, 0, j]
+                G[3, y + K, x + K] = H[q, 1, j]
+                lo[y] = min(lo[y], x)
+                hi[y] = max(hi[y], x + 1)
+        Rg, Vg, Ag, Bg = G[0], G[1], G[2], G[3]
+        # half the lags: the others by symmetry (c(-lag) = c(lag); the cross term enters
+        # the covariance only as kxy(lag) + kxy(-lag), kept as its mean at both)
+        for dy in range(K + 1):
+            for dx in range(-K, K + 1):
+                if dy == 0 and dx < 0:
+                    continue
+                srr = 0.0
+                svv = 0.0
+                sxx = 0.0
+                syy = 0.0
+                sxy = 0.0
+                for y in range(gh):
+                    # a row's sums in float32 (they vectorise), the rows' in float64
+                    rr_ = _ZERO
+                    vv_ = _ZERO
+                    xx_ = _ZERO
+                    yy_ = _ZERO
+                    xy_ = _ZERO
+                    a0 = lo[y] + K
+                    m = hi[y] - lo[y]
+                    r1 = Rg[y + K, a0 : a0 + m]
+                    r2 = Rg[y + K + dy, a0 + dx : a0 + dx + m]
+                    v1 = Vg[y + K, a0 : a0 + m]
+                    v2 = Vg[y + K + dy, a0 + dx : a0 + dx + m]
+                    p1 = Ag[y + K, a0 : a0 + m]
+                    p2 = Ag[y + K + dy, a0 + dx : a0 + dx + m]
+                    q1 = Bg[y + K, a0 : a0 + m]
+                    q2 = Bg[y + K + dy, a0 + dx : a0 + dx + m]
+                    for x in range(m):
+                        rr_ += r1[x] * r2[x]
+                        vv_ += v1[x] * v2[x]
+                        xx_ += p1[x] * p2[x]
+                        yy_ += q1[x] * q2[x]
+                        xy_ += p1[x] * q2[x] + q1[x] * p2[x]
+                    srr += rr_
+                    svv += vv_
+                    sxx += xx_
+                    syy += yy_
+                    sxy += xy_
+                for (u, v) in ((K + dy, K + dx), (K - dy, K - dx)):
+                    out[q, 0, u, v] = srr
+                    out[q, 1, u, v] = svv
+                    out[q, 2, u, v] = sxx
+                    out[q, 3, u, v] = 0.5 * sxy
+                    out[q, 4, u, v] = syy
+
+
+def corr_sums(ix, iy, valid, R, H, K):
+    """``Sum_i a_i b_{i+lag}`` over each mark's valid pixels at the lags -K..K (rows: y, cols:
+    x) for the pairs (R, R), (1, 1), (h0, h0), (h0, h1), (h1, h1): (N, 5, 2K+1, 2K+1)
+    float64 -- the correlations ``lsm._correlated_cov`` takes from FFTs, summed directly over
+    the pixel pairs (for the few lags it uses, far fewer operations); of the pair (h0, h1)
+    the mean of the lags +-lag (all the covariance takes of it). ``ix``, ``iy`` (N, P)
+    int: the pixels' integer positions (>= 0 where valid); ``R`` (N, P) and ``H`` (N, 2, P)
+    float32."""
+    n = R.shape[0]
+    out = np.empty((n, 5, 2 * K + 1, 2 * K + 1))
+    c = np.ascontiguousarray
+    _corr_sums(c(ix, np.int64), c(iy, np.int64), c(valid), c(R, np.float32),
+               c(H, np.float32), int(K), out)
+    return out
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -398,6 +488,8 @@ def load() -> bool:
                                                                   width=1.0))
             weigh(p, data, M, J, True)
             influence(np.eye(12)[None], J)
+            corr_sums(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.int64), z > -1, z,
+                      np.zeros((1, 2, 1), np.float32), 1)
             cross_template(MarkShape("cross", length=5.0, width=1.0), np.zeros((1, 2)),
                            np.zeros((1, 2)), np.eye(2)[None], np.ones(1), (3, 3), np.ones(1))
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path

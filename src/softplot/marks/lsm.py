@@ -511,10 +511,12 @@ def _correlated_cov(h, r, w, valid, X, Y, s0sq, blur):
                                                          else 1.0, 0.5)) + 1))
     K = max(CORR_MIN_LAG, K)
     K = max(1, min(K, gh - 1, gw - 1)) if min(gh, gw) > 1 else 0
-    shp = (fft.next_fast_len(gh + K), fft.next_fast_len(gw + K))
-    flat = iy * shp[1] + ix
     vf = valid.astype(np.float32)
     R = (np.sqrt(np.maximum(w, 0.0)) * r * vf).astype(np.float32)
+    if kernels.ready():  # the few lags summed directly over the pixel pairs (compiled)
+        return _cov_from_sums(kernels.corr_sums(ix, iy, valid, R, h, K), K, s0sq)
+    shp = (fft.next_fast_len(gh + K), fft.next_fast_len(gw + K))
+    flat = iy * shp[1] + ix
     rows = np.arange(n)[:, None]
 
     def grid(vals):
@@ -535,6 +537,12 @@ def _correlated_cov(h, r, w, valid, X, Y, s0sq, blur):
     ks = np.r_[shp[0] - K : shp[0], 0 : K + 1]
     ls = np.r_[shp[1] - K : shp[1], 0 : K + 1]
     cc = cc[:, :, ks][:, :, :, ls].astype(float)
+    return _cov_from_sums(cc, K, s0sq)
+
+
+def _cov_from_sums(cc, K, s0sq):
+    """:func:`_correlated_cov` from the sums ``cc`` (N, 5, 2K+1, 2K+1) over the lags."""
+    n = cc.shape[0]
     rr, vv, kxx, kxy, kyy = (cc[:, j] for j in range(5))
     var0 = rr[:, K, K] / np.maximum(vv[:, K, K], 1.0)
     rho = (rr / np.maximum(vv, 1.0)) / np.maximum(var0, 1e-30)[:, None, None]
