@@ -28,7 +28,7 @@ import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "corr_sums", "load", "ready"]
+__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "corr_sums", "gather_cross", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -460,6 +460,91 @@ def corr_sums(ix, iy, valid, R, H, K):
                c(H, np.float32), int(K), out)
     return out
 
+
+@njit(cache=True, nogil=True)
+def _support(patches, cl, A, hl, hw, keep, counts):
+    n, h, w = patches.shape
+    for i in range(n):
+        cx, cy = cl[i, 0], cl[i, 1]
+        a00, a01, a10, a11 = A[i, 0], A[i, 1], A[i, 2], A[i, 3]
+        c = 0
+        for y in range(h):
+            dy = _f4(y) - cy
+            for x in range(w):
+                dx = _f4(x) - cx
+                au = abs(a00 * dx + a01 * dy)
+                av = abs(a10 * dx + a11 * dy)
+                k = (((au <= hl) and (av <= hw)) or ((av <= hl) and (au <= hw))) and \
+                    np.isfinite(patches[i, y, x])
+                keep[i, y * w + x] = k
+                c += k
+        counts[i] = c
+
+
+@njit(cache=True, nogil=True)
+def _compact(keep, counts, off, patches, bg, wt, sat, lo, hi, has_bg, has_wt, has_sat,
+             has_clip, X, Y, G, V, S, Wp, Q, Cc):
+    n, h, w = patches.shape
+    P = X.shape[1]
+    for i in range(n):
+        # the kept pixels first, then the others (the order of a stable sort on ~keep)
+        k = 0
+        for t in range(2):
+            for f in range(h * w):
+                if k >= P:
+                    break
+                if keep[i, f] != (t == 0):
+                    continue
+                y = f // w
+                x = f - y * w
+                X[i, k] = off[i, 0] + _f4(x)
+                Y[i, k] = off[i, 1] + _f4(y)
+                ok = t == 0
+                V[i, k] = ok
+                g = patches[i, y, x] if ok else _ZERO
+                G[i, k] = g
+                S[i, k] = bg[i, y, x] if (ok and has_bg) else _ZERO
+                Wp[i, k] = (wt[i, y, x] if has_wt else _ONE) if ok else _ZERO
+                Q[i, k] = sat[i, y, x] if (ok and has_sat) else _ZERO
+                c = _ZERO
+                if ok and has_clip:
+                    if g <= lo:
+                        c = -_ONE
+                    elif g >= hi:
+                        c = _ONE
+                Cc[i, k] = c
+                k += 1
+
+
+def gather_cross(patches, origin, ref, c, A, length, width, margin, background=None,
+                 weight=None, sat_bg=None, clip=None):
+    """``lsm._gather`` for crosses in two compiled passes (the same arrays): each mark's
+    pixels within ``margin`` px of its cross, in patch order, padded to the largest count."""
+    n, h, w = patches.shape
+    f4 = np.float32
+    cl = (np.asarray(c, float) - origin).astype(f4)
+    Af = np.ascontiguousarray(np.asarray(A, f4).reshape(n, 4))
+    hl = f4(0.5 * length + margin)
+    hw = f4(0.5 * width + margin)
+    pt = np.ascontiguousarray(patches, f4)
+    keep = np.empty((n, h * w), np.bool_)
+    counts = np.empty(n, np.int64)
+    _support(pt, cl, Af, hl, hw, keep, counts)
+    P = max(int(counts.max()) if n else 1, 1)
+    off = (origin - ref).astype(f4)
+    X, Y, G, S, Wp, Q, Cc = (np.empty((n, P), f4) for _ in range(7))
+    V = np.empty((n, P), np.bool_)
+    z = np.zeros((1, 1, 1), f4)
+
+    def arr(a):
+        return z if a is None else np.ascontiguousarray(a, f4)
+
+    lo, hi = (f4(clip[0] + 1e-6), f4(clip[1] - 1e-6)) if clip is not None else (f4(0), f4(0))
+    _compact(keep, counts, off, pt, arr(background), arr(weight), arr(sat_bg), lo, hi,
+             background is not None, weight is not None, sat_bg is not None, clip is not None,
+             X, Y, G, V, S, Wp, Q, Cc)
+    return X, Y, G, V, S, Wp, Q, Cc
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -490,6 +575,9 @@ def load() -> bool:
             influence(np.eye(12)[None], J)
             corr_sums(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.int64), z > -1, z,
                       np.zeros((1, 2, 1), np.float32), 1)
+            gather_cross(np.zeros((1, 3, 3), np.float32), np.zeros((1, 2)), np.zeros((1, 2)),
+                         np.ones((1, 2)), np.eye(2)[None], 2.0, 1.0, 1.0, np.zeros((1, 3, 3)),
+                         np.ones((1, 3, 3)), np.zeros((1, 3, 3)), (0.0, 1.0))
             cross_template(MarkShape("cross", length=5.0, width=1.0), np.zeros((1, 2)),
                            np.zeros((1, 2)), np.eye(2)[None], np.ones(1), (3, 3), np.ones(1))
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path

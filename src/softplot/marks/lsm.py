@@ -173,6 +173,9 @@ def _gather(patches, origin, ref, c, A, shape, margin, background=None, weight=N
     saturated background (``sat_bg``, 0/1) and the censoring code of each grey value (+1 at
     the upper end of ``clip``, -1 at the lower end, 0 inside).
     """
+    if shape.kind == "cross" and kernels.ready():  # compiled: the same arrays
+        return kernels.gather_cross(patches, origin, ref, c, A, shape.length, shape.width,
+                                    margin, background, weight, sat_bg, clip)
     n, h, w = patches.shape
     off = (origin - ref).astype(np.float32)
     jj = np.arange(w, dtype=np.float32)
