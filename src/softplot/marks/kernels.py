@@ -28,7 +28,8 @@ import numpy as np
 
 from softplot.marks.template import _ZSAT, _Phi_phi
 
-__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "cross_template", "corr_sums", "gather_cross", "load", "ready"]
+__all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
+           "cross_template", "corr_sums", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -202,7 +203,7 @@ def cross_model(p, data, shape):
 
 
 @njit(fastmath=True, cache=True, nogil=True)
-def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss):
+def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss, wsum):
     # (fastmath: the order of the float64 sums is free; the MAD's element is picked exactly)
     n, npx = X.shape
     K = J.shape[2]
@@ -237,6 +238,7 @@ def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss)
         for a in range(K):
             gg[a] = 0.0
         ss = 0.0
+        sw_ = 0.0
         for j in range(npx):
             if not valid[i, j]:
                 WR[i, j] = _ZERO
@@ -255,6 +257,7 @@ def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss)
             cens = (c > 0 and M[i, j] >= G[i, j]) or (c < 0 and M[i, j] <= G[i, j])
             w = _ZERO if cens else wr * Wp[i, j]
             W[i, j] = w
+            sw_ += w
             sw = np.sqrt(w)
             swr = float(sw * r)
             ss += float(w * r * r)
@@ -265,6 +268,7 @@ def _weigh(G, M, valid, Wp, Cc, S, X, Y, Qs, q, pb, robust, R, WR, W, J, g, rss)
         for a in range(K):
             g[i, a] = gg[a]
         rss[i] = ss
+        wsum[i] = sw_
 
 
 @njit(fastmath=True, cache=True, nogil=True)
@@ -299,14 +303,15 @@ def weigh(p, data, M, J, robust):
     K = J.shape[2]
     g = np.empty((n, K))
     rss = np.empty(n)
+    wsum = np.empty(n)
     q = np.ascontiguousarray(p, np.float32)
     pb = np.ascontiguousarray(p[:, 8], np.float64)
     c = np.ascontiguousarray
     _weigh(c(G), c(M), c(valid), c(Wp), c(Cc), c(S), c(X), c(Y), c(Qs), q, pb, bool(robust),
-           R, WR, W, J, g, rss)
+           R, WR, W, J, g, rss, wsum)
     # J^T J by BLAS (faster than a compiled loop over the 78 products)
     Nm = np.matmul(J.transpose(0, 2, 1), J).astype(float)
-    return R, WR, W, Nm, g, rss
+    return R, WR, W, Nm, g, rss, wsum
 
 
 def influence(Ninv, J):
@@ -374,7 +379,6 @@ def cross_template(shape, origin, c, A, s, hw, margin):
 @njit(fastmath=True, cache=True, nogil=True)
 def _corr_sums(ix, iy, valid, R, H, K, out):
     n, npx = R.shape
-    L = 2 * K + 1
     for q in range(n):
         gh = 0
         gw = 0
@@ -545,6 +549,111 @@ def gather_cross(patches, origin, ref, c, A, length, width, margin, background=N
              X, Y, G, V, S, Wp, Q, Cc)
     return X, Y, G, V, S, Wp, Q, Cc
 
+
+@njit(fastmath=False, cache=True, nogil=True)
+def _invert(Nm, g, active, Ninv, ok):
+    n, K, _ = Nm.shape
+    A = np.empty((K, 2 * K))
+    for i in range(n):
+        # inactive parameters pinned (row, column 0, diagonal 1, no gradient); a parameter
+        # without data too; a touch of Levenberg-Marquardt damping
+        for a in range(K):
+            for b in range(K):
+                A[a, b] = Nm[i, a, b] if (active[a] and active[b]) else 0.0
+                A[a, K + b] = 1.0 if a == b else 0.0
+            if not active[a]:
+                A[a, a] = 1.0
+                g[i, a] = 0.0
+            if not A[a, a] > 0:
+                A[a, a] = 1.0
+            A[a, a] *= 1.0 + 1e-6
+        # Gauss-Jordan with partial pivoting
+        good = True
+        for c in range(K):
+            piv = c
+            best = abs(A[c, c])
+            for a in range(c + 1, K):
+                if abs(A[a, c]) > best:
+                    best = abs(A[a, c])
+                    piv = a
+            if not best > 0 or not np.isfinite(best):
+                good = False
+                break
+            if piv != c:
+                for b in range(2 * K):
+                    t = A[c, b]
+                    A[c, b] = A[piv, b]
+                    A[piv, b] = t
+            d = 1.0 / A[c, c]
+            for b in range(2 * K):
+                A[c, b] *= d
+            for a in range(K):
+                if a != c:
+                    f = A[a, c]
+                    if f != 0.0:
+                        for b in range(2 * K):
+                            A[a, b] -= f * A[c, b]
+        ok[i] = good
+        for a in range(K):
+            for b in range(K):
+                Ninv[i, a, b] = A[a, K + b]
+
+
+@njit(fastmath=False, cache=True, nogil=True)
+def _advance(Ninv, g, wsum, nact, wrr, p, dc, sig, cov, s0sq):
+    n, K, _ = Ninv.shape
+    dp = np.empty(K)
+    for i in range(n):
+        for a in range(K):
+            t = 0.0
+            for b in range(K):
+                t += Ninv[i, a, b] * g[i, b]
+            dp[a] = t if np.isfinite(t) else 0.0
+        s0 = wrr[i] / max(wsum[i] - nact, 1.0)
+        s0sq[i] = s0
+        for a in range(2):
+            for b in range(2):
+                cov[i, a, b] = Ninv[i, a, b] * s0
+        sig[i] = np.sqrt(max(0.5 * (cov[i, 0, 0] + cov[i, 1, 1]), 0.0))
+        # step limits: centre 1.5 px, shape 5 %, blur within a sane range
+        d = np.hypot(dp[0], dp[1])
+        k = min(1.0, 1.5 / max(d, 1e-12))
+        dp[0] *= k
+        dp[1] *= k
+        settled = abs(dp[6]) < 0.01
+        for a in range(2, 6):
+            dp[a] = min(max(dp[a], -0.05), 0.05)
+            settled = settled and abs(dp[a]) < 2e-3
+        for a in range(K):
+            p[i, a] += dp[a]
+        p[i, 6] = min(max(p[i, 6], 0.05), 25.0)
+        dc[i] = d if settled else max(d, 1.0)
+
+
+def invert(Nm, g, active):
+    """The inverse of N crosses' normal equations ``Nm`` (N, 12, 12) with the parameters
+    not ``active`` pinned (and ``g`` zeroed there, in place), a parameter without data
+    pinned, and a damping of 1e-6 on the diagonal, as ``lsm._step`` sets them up; by
+    Gauss-Jordan elimination (compiled). Returns ``(Ninv, ok)``; ``ok`` False where a
+    pivot vanished (the caller then takes the pseudo-inverse)."""
+    n, K, _ = Nm.shape
+    Ninv = np.empty_like(Nm)
+    ok = np.empty(n, np.bool_)
+    _invert(Nm, g, np.ascontiguousarray(active, np.bool_), Ninv, ok)
+    return Ninv, ok
+
+
+def advance(Ninv, g, wsum, wrr, nact, p):
+    """The rest of ``lsm._step`` after the inversion, compiled: the update ``Ninv g`` (0
+    where not finite), the residual variance ``wrr / (wsum - nact)``, the centre's
+    covariance and sigma, the step limits, ``p`` advanced in place and the centre update
+    (at least 1 px where the shape or blur still moves). Returns ``(dc, sig, cov, s0sq)``."""
+    n = len(p)
+    dc, sig, s0sq = np.empty(n), np.empty(n), np.empty(n)
+    cov = np.empty((n, 2, 2))
+    _advance(Ninv, g, wsum, float(nact), wrr, p, dc, sig, cov, s0sq)
+    return dc, sig, cov, s0sq
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -571,7 +680,9 @@ def load() -> bool:
             data = (z, z, z, z > 0, z, z, z, z)
             M, _, _, _, _, _, J = cross_model(p, data, MarkShape("cross", length=5.0,
                                                                   width=1.0))
-            weigh(p, data, M, J, True)
+            *_, Nm, g, wrr, wsum = weigh(p, data, M, J, True)
+            Ninv, _ = invert(Nm, g, np.ones(12, bool))
+            advance(Ninv, g, wsum, wrr, 12, p.copy())
             influence(np.eye(12)[None], J)
             corr_sums(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.int64), z > -1, z,
                       np.zeros((1, 2, 1), np.float32), 1)

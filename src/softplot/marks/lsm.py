@@ -359,9 +359,15 @@ def _step(p, data, shape, active, robust, init=False):
     else:
         M, T, u, v, J = _assemble(p, data, geo)
         Tu, Tv = geo[1], geo[2]
-    if jit:  # the weights and normal equations in one compiled pass too (the same sums)
-        r, w_rob, w, Nm, g, wrr = kernels.weigh(p, data, M, J, robust)
-        _pin(Nm, g, active)
+    if jit:  # the weights, normal equations and update compiled too (the same sums)
+        r, w_rob, w, Nm, g, wrr, wsum = kernels.weigh(p, data, M, J, robust)
+        Ninv, inv_ok = kernels.invert(Nm, g, active)
+        if inv_ok.all():
+            dc, sig, cov, s0sq = kernels.advance(Ninv, g, wsum, wrr, int(active.sum()), p)
+            state = dict(M=M, T=T, u=u, v=v, r=r, w_rob=w_rob, w=w, cov=cov, s0sq=s0sq, Tu=Tu,
+                         Tv=Tv, h=kernels.influence(Ninv, J))
+            return dc, sig, state
+        _pin(Nm, g, active)  # a vanishing pivot: the pseudo-inverse below
     else:
         r = np.where(valid, G - M, 0.0).astype(np.float32)
         # censored grey values (at the end of the range): they only say "at least this
