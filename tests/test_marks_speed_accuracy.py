@@ -3,6 +3,8 @@
 * the compiled joint-scene solve (:mod:`softplot.marks.scene_tv`) at every blur radius (its
   7- and 9-tap paths for radii up to 3 and 4 px, the general loop beyond) agrees with the
   NumPy path;
+* the compiled parts of LSM (pixel gather, step, residual correlation, the joint scene's
+  template) agree with the NumPy paths;
 * ``scene="auto"`` on busy scenes, which refits with the joint scene only the crosses with a
   scene edge in their footprint, is as accurate as the joint estimate on every cross
   (``scene="joint"``, what ``auto`` did before) while solving the scene under far fewer
@@ -96,3 +98,89 @@ def test_busy_scene_auto_is_as_accurate_as_the_joint_estimate_on_every_cross(mon
     assert r["auto"] <= 1.03 * r["joint"], r
     assert r["opening"] > 1.15 * r["joint"], r
     assert patches["auto"] <= 0.7 * patches["joint"], patches
+
+
+def _cross_stack(seed, n=6, half=30):
+    """N noisy patches of turned, blurred crosses over a tilted scene with an edge, clipped
+    at 1 (some censored pixels): ``(stack, origin, centre, A, shape, blur)``."""
+    from softplot.marks.measure import _template
+    from softplot.marks.template import MarkShape
+
+    rng = np.random.default_rng(seed)
+    shape = MarkShape("cross", length=rng.uniform(25, 45), width=rng.uniform(1.5, 4.0))
+    size = 2 * half + 1
+    origin = rng.integers(0, 4000, (n, 2)).astype(float)
+    c = origin + half + rng.uniform(-0.5, 0.5, (n, 2))
+    th = rng.uniform(-0.1, 0.1, n)
+    A = np.stack([np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]]) for t in th])
+    A *= rng.uniform(0.97, 1.03, (n, 1, 1))
+    s = rng.uniform(0.6, 1.6, n)
+    T = _template(shape, origin, c, A, s, (size, size))
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    edge = xx[None] > rng.integers(10, 50, (n, 1, 1))
+    scene = 0.62 + 0.003 * xx[None] - 0.002 * yy[None] + 0.4 * edge
+    g = scene * (1 - T) + 0.08 * T + rng.normal(0, 0.02, (n, size, size))
+    return np.clip(g, 0.0, 1.0).astype(np.float32), origin, c, A, shape, s
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_compiled_lsm_step_gather_and_correlation_match_numpy(seed, monkeypatch):
+    """The compiled parts of LSM (the pixel gather, the weights, normal equations, inversion
+    and update of each step, the residual correlation's sums, the joint scene's template)
+    give what the NumPy paths give: the same gathered arrays, the same fits to 1e-4 px and
+    covariances to 1e-3 (float32 sums in another order), the same correlation sums."""
+    from softplot.marks import lsm as L
+    from softplot.marks.measure import _template, scene_background
+
+    stack, origin, c, A, shape, s = _cross_stack(seed)
+    c0 = c + np.random.default_rng(seed).uniform(-0.4, 0.4, c.shape)
+    bg, wt, _ = scene_background(stack, shape, 1.0, -1)
+    kw = dict(shape=shape, s0=1.0, init_err=0.5, background=bg, weight=wt, clip=(0.0, 1.0))
+    ref = np.round(c0)
+    gathered = L._gather(stack, origin, ref, c0, A, shape, 3.0, bg, wt, None, (0.0, 1.0))
+    fit = L.lsm(stack, origin, c0, A, **kw)
+    Tk = _template(shape, origin, c, A, s, stack.shape[1:])
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    gathered0 = L._gather(stack, origin, ref, c0, A, shape, 3.0, bg, wt, None, (0.0, 1.0))
+    fit0 = L.lsm(stack, origin, c0, A, **kw)
+    T0 = _template(shape, origin, c, A, s, stack.shape[1:])
+    for a, b in zip(gathered, gathered0, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert (gathered0[7] > 0).any()  # censored pixels were there
+    assert np.abs(fit.centre - fit0.centre).max() < 1e-4
+    assert np.abs(fit.s - fit0.s).max() < 1e-3
+    assert np.abs(fit.cov - fit0.cov).max() < 1e-3 * np.abs(fit0.cov).max()
+    assert np.abs(fit.cov_white - fit0.cov_white).max() < 1e-3 * np.abs(fit0.cov_white).max()
+    # the correlated covariance differs from the independent pixels' (the test can fail)
+    assert not np.allclose(fit0.cov, fit0.cov_white, rtol=1e-2)
+    assert np.abs(Tk - T0).max() < 2e-5 and T0.max() > 0.9
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_compiled_correlation_sums_match_the_ffts(monkeypatch):
+    """The residual correlation summed directly over the pixel pairs (compiled) gives the
+    FFTs' covariance, at the least and the largest lag reach."""
+    from softplot.marks import lsm as L
+
+    rng = np.random.default_rng(4)
+    # the pixels of a cross's footprint in a 40 x 30 box, in random order, a few invalid
+    yy, xx = np.mgrid[0:30, 0:40]
+    foot = (np.abs(xx - 20) <= 3) | (np.abs(yy - 15) <= 3)
+    n, P = 5, int(foot.sum())
+    X = np.stack([rng.permutation(xx[foot]) for _ in range(n)]).astype(np.float32)
+    Y = np.zeros_like(X)
+    for i in range(n):
+        k = rng.permutation(P)
+        X[i], Y[i] = xx[foot][k], yy[foot][k]
+    valid = rng.random((n, P)) > 0.05
+    r = rng.normal(0, 1, (n, P)).astype(np.float32)
+    w = rng.uniform(0.2, 1, (n, P)).astype(np.float32)
+    h = rng.normal(0, 1e-3, (n, 2, P)).astype(np.float32)
+    s0sq = rng.uniform(0.5, 2, n)
+    for blur in (0.3, 4.0):
+        a = L._correlated_cov(h, r, w, valid, X, Y, s0sq, np.full(n, blur))
+        monkeypatch.setattr(kernels, "AVAILABLE", False)
+        b = L._correlated_cov(h, r, w, valid, X, Y, s0sq, np.full(n, blur))
+        monkeypatch.setattr(kernels, "AVAILABLE", True)
+        assert np.abs(a - b).max() < 1e-5 * np.abs(b).max()

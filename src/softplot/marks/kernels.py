@@ -13,6 +13,16 @@ cheap: no transcendental function per pixel.
 ``tests/test_marks_units.py::test_compiled_cross_model_matches_numpy`` holds the two
 implementations together.
 
+The rest of an LSM step is compiled too, each the NumPy path's arithmetic in one pass:
+:func:`weigh` (residuals, censoring, robust and prior weights, the weighted Jacobian and
+gradient), :func:`invert` and :func:`advance` (the pinned, damped normal equations' inverse
+and the limited update), :func:`influence` (the centre's influence on each pixel); and
+:func:`gather_cross` (the pixels a fit uses), :func:`corr_sums` (the residual correlation of
+the covariance, summed directly over the few lags it uses instead of by FFTs) and
+:func:`cross_template` (the joint scene's template). Most of a fit of a few marks was NumPy's
+per-call overhead; these passes hold the GIL only to start
+(``tests/test_marks_speed_accuracy.py::test_compiled_lsm_step_gather_and_correlation_match_numpy``).
+
 All arrays are in the pixel system of :mod:`softplot.marks.lsm` (coordinates relative to
 each mark's reference pixel). Without numba (or with ``SOFTPLOT_JIT=0`` in the environment)
 :data:`AVAILABLE` is False and LSM uses its NumPy path.
