@@ -326,3 +326,22 @@ def test_an_ambiguous_render_is_scored_by_what_the_detection_says():
     assert max(said.err2) < 1e-20
     # on a render that shows its rows, saying "ambiguous" does not excuse a wrong name
     assert score(det, truth, bounds, "").wrong
+
+
+def test_renders_are_cached_exactly(tmp_path):
+    """A render kept by ``render_case(case, cache)`` comes back the same, bit for bit, and a
+    case that differs gets its own render."""
+    from dataclasses import replace
+
+    from softplot.synthetic.sweep import render_case
+
+    seed = min(range(40), key=lambda s: _pixels(make_case(s)))
+    case = make_case(seed)
+    a = render_case(case, tmp_path)
+    b = render_case(case, tmp_path)
+    assert np.array_equal(a[0], b[0]) and a[0].dtype == b[0].dtype
+    assert a[1] == b[1] and a[3] == b[3]
+    assert (a[2] is None) == (b[2] is None)
+    other = replace(case, spec=replace(case.spec, noise_sigma=case.spec.noise_sigma * 2))
+    render_case(other, tmp_path)
+    assert len(list(tmp_path.glob("*.json"))) == 2

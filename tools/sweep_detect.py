@@ -41,6 +41,10 @@ def main(argv=None) -> int:
     ap.add_argument("--table", type=Path, help="write the markdown table here")
     ap.add_argument("--failures", type=Path, help="write the failing cases here (markdown)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON line per case here")
+    ap.add_argument("--cache", type=Path, help="keep the renders in this folder and reuse "
+                    "them (the renders cost far more than detection)")
+    ap.add_argument("--render-only", action="store_true",
+                    help="only fill --cache with the renders, detect nothing")
     ap.add_argument("--every", type=int, default=20,
                     help="rewrite --table and --failures every this many renders")
     a = ap.parse_args(argv)
@@ -70,12 +74,23 @@ def main(argv=None) -> int:
         seeds = list(range(a.start, a.start + (FULL if a.full else a.n)))
     results, failures = [], []
     t0 = time.perf_counter()
+    if a.render_only:
+        if not a.cache:
+            ap.error("--render-only needs --cache")
+        from softplot.synthetic.sweep import render_case
+
+        for k, seed in enumerate(seeds):
+            t1 = time.perf_counter()
+            render_case(make_case(seed, a.layout), a.cache)
+            print(f"[{k + 1}/{len(seeds)}] seed {seed} rendered in "
+                  f"{time.perf_counter() - t1:.1f} s", flush=True)
+        return 0
     for k, seed in enumerate(seeds):
         case = make_case(seed, a.layout)
         t1 = time.perf_counter()
         if a.save:
             _save(a.save, case)
-        sc, det = run_case(case)
+        sc, det = run_case(case, cache=a.cache)
         bad = failure_lines(case, sc)
         results.append((case, sc))
         d = sc.to_dict()

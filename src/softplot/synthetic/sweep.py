@@ -399,9 +399,9 @@ def identifiable(truth: dict) -> str:
     there) and, on each axis, an end line of the grid (row 0 or the last row; column 0 or
     the last column) with a visible cross *and* the film format's edge beyond that line inside
     the scan: only then does the image say where the grid ends. A part of the lattice without
-    such an edge on an axis could be any part of the grid. A flat dark region that exposes
-    nothing over the only end row shown hides both the row and the edge (its crosses are
-    "dark").
+    such an edge on an axis could be any part of the grid, unless it shows every row (col) of
+    the grid. A flat dark region that exposes nothing over the only end row shown hides both
+    the row and the edge (its crosses are "dark").
     """
     rs = [m for m in truth["marks"] if m["kind"] == "reseau"]
     if not rs:
@@ -434,7 +434,8 @@ def identifiable(truth: dict) -> str:
     why = []
     for key, sides in (("row", ((0, 1.0), (nr - 1, -1.0))),
                        ("col", ((0, -1.0), (nc - 1, 1.0)))):
-        ok = False
+        # every row (col) of the grid seen: no other numbering fits
+        ok = {m[key] for m in vis} >= set(range(sides[1][0] + 1))
         for idx, side in sides:
             line = [m for m in vis if m[key] == idx]
             ok |= edge_shown(line, key, side)
@@ -569,8 +570,58 @@ def _loss_at_marks(diff: np.ndarray, truth: dict) -> float:
     return math.sqrt(acc / n) if n else float(np.sqrt(np.mean(np.square(diff))))
 
 
-def render_case(case: Case):
-    """(image as stored, truth, grey scene without marks or None, JPEG loss rms)."""
+def _cache_key(case: Case) -> str:
+    """A name for the render of ``case`` that changes with the case and with the renderer's
+    code (:func:`render_case` with ``cache``)."""
+    import hashlib
+    from pathlib import Path
+
+    global _RENDER_CODE
+    if _RENDER_CODE is None:  # once per process: the code that made the renders
+        import inspect
+
+        here = Path(__file__).parent
+        code = b"".join((here / f).read_bytes()
+                        for f in ("scan.py", "scene.py", "marks.py", "mapping.py"))
+        code += "".join(inspect.getsource(f) for f in (_jpeg, _loss_at_marks)).encode()
+        _RENDER_CODE = hashlib.sha1(code).hexdigest()
+    h = hashlib.sha1(repr((case.camera, case.spec, case.seed, case.jpeg)).encode())
+    h.update(_RENDER_CODE.encode())
+    return f"sweep-{case.seed:05d}-{h.hexdigest()[:12]}"
+
+
+_RENDER_CODE = None
+
+
+def render_case(case: Case, cache=None):
+    """(image as stored, truth, grey scene without marks or None, JPEG loss rms).
+
+    ``cache``: a folder where renders are kept (``.npy`` + JSON, reused when the case and
+    the renderer's code are the same): the sweep's renders cost far more than detection.
+    """
+    if cache is not None:
+        import json
+        from pathlib import Path
+
+        base = Path(cache) / _cache_key(case)
+        meta = base.with_suffix(".json")
+        if meta.exists():
+            d = json.loads(meta.read_text(encoding="utf-8"))
+            img = np.load(str(base) + ".img.npy")
+            scene = np.load(str(base) + ".scene.npy") if d["scene"] else None
+            return img, d["truth"], scene, d["jpeg_rms"]
+        out = render_case(case)
+        Path(cache).mkdir(parents=True, exist_ok=True)
+        for part, a in (("img", out[0]), ("scene", out[2])):
+            if a is not None:  # written under another name, then renamed: never half read
+                tmp = Path(f"{base}.{part}.tmp.npy")
+                np.save(tmp, a if part == "img" else a.astype(np.float32))
+                tmp.replace(f"{base}.{part}.npy")
+        tmp = meta.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"truth": out[1], "scene": out[2] is not None,
+                                   "jpeg_rms": out[3]}), encoding="utf-8")
+        tmp.replace(meta)  # written last: a render is complete when its JSON exists
+        return out
     img, truth = render_scan(case.camera, case.spec, case.seed)
     jpeg_rms = 0.0
     if case.jpeg:
@@ -585,12 +636,13 @@ def render_case(case: Case):
     return img, truth, scene, jpeg_rms
 
 
-def run_case(case: Case, detect_kw: dict | None = None) -> tuple[Score, object]:
-    """Render, detect in-process, score. Returns (score, detection or None)."""
+def run_case(case: Case, detect_kw: dict | None = None, cache=None) -> tuple[Score, object]:
+    """Render (or take the render from ``cache``, :func:`render_case`), detect in-process,
+    score. Returns (score, detection or None)."""
     from softplot.io import Scan
     from softplot.marks import detect
 
-    img, truth, scene, jpeg_rms = render_case(case)
+    img, truth, scene, jpeg_rms = render_case(case, cache)
     bits = truth["bit_depth"] if img.dtype == np.uint16 else 8
     scan = Scan.from_array(img, dpi=truth["dpi"], bit_depth=bits)
     t0 = time.perf_counter()
