@@ -73,8 +73,9 @@ def frame_evidence(ov, f: int, ppm: float):
     per mm. Returns a function of format corners (K, 4, 2) (full-resolution pixel system;
     top-left, top-right, bottom-right, bottom-left) giving, per quadrilateral, the sum over
     its edges that lie in the scan of the step of grey across the edge (median of inside minus
-    outside, 0.3 mm either side, along the edge, over the overview's grey range 5-95 %: near 1
-    for the unexposed border of a film, small for scene content) less :data:`FRAME_STEP`,
+    outside, 0.3 mm either side, along the edge, over the overview's grey range 5-95 %, at
+    most 1: near 1 for the unexposed border of a film, small for scene content) less
+    :data:`FRAME_STEP`,
     over 4: a shift that puts more of the format's edges on real steps wins, one that puts an
     edge on scene content loses. Edges outside the scan are left out.
     """
@@ -125,7 +126,11 @@ def frame_evidence(ov, f: int, ppm: float):
             p = a[use, None, :] + t[..., None] * (b - a)[use, None, :]  # (U, 200, 2)
             gi, _ = sample(p - n[use, None, :] * d * f)
             go, _ = sample(p + n[use, None, :] * d * f)
-            total[use] += np.abs(np.median(gi - go, 1)) / rng - FRAME_STEP
+            # each edge counts at most a full step: on a scan whose grey range is mostly
+            # the film's (a low-contrast frame, little border) one edge on the border would
+            # otherwise outweigh every other edge, and every shift would score alike
+            step = np.minimum(np.abs(np.median(gi - go, 1)) / rng, 1.0)
+            total[use] += step - FRAME_STEP
         return np.clip(total / 4.0, -1.0, 1.0)
 
     return evidence
