@@ -66,7 +66,6 @@ from softplot.marks.measure import AcceptRules, measure, measure_one_arm, median
 from softplot.marks.overview import reseau_overview
 from softplot.marks.result import Detection
 from softplot.marks.template import MarkShape, cross_shape
-from softplot.runtime import thread_map
 
 __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_grid_part"]
 
@@ -823,13 +822,15 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
             continue
         Ag = A[rej[grp]] if fit_shape else held[rej[grp]]
 
-        def fit(k, grp=grp, Ag=Ag, fit_shape=fit_shape):
-            return measure(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
-                           anchor=target[grp], max_shift=max_shift, drop_part=k,
-                           fit_shape=fit_shape, scene_tv=scene_tv, blur=blur)
-
-        # the four fits are independent (on the threads); merged in order
-        for f2 in thread_map(fit, range(4)):
+        # the four fits are independent: one call measures them as four calls would, in
+        # common fits where the blur is held (measure's per-mark drop_part); merged in order
+        m = grp.size
+        f4 = measure(sc, shape, np.tile(target[grp], (4, 1)), np.tile(Ag, (4, 1, 1)), s0,
+                     init_err, sign, rules, anchor=np.tile(target[grp], (4, 1)),
+                     max_shift=max_shift, drop_part=np.repeat(np.arange(4), m),
+                     fit_shape=fit_shape, scene_tv=scene_tv, blur=blur)
+        for k in range(4):
+            f2 = f4.rows(slice(k * m, (k + 1) * m))
             sg = f2.sigma
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]

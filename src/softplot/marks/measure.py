@@ -116,6 +116,21 @@ class Fine:
         c = self.cov if self.cov_white is None else self.cov_white
         return np.sqrt(0.5 * (c[:, 0, 0] + c[:, 1, 1]))
 
+    def rows(self, k) -> "Fine":
+        """The marks ``k`` (an index array or slice) of these results."""
+        kw = {}
+        for f in fields(Fine):
+            a = getattr(self, f.name)
+            if f.name == "reason":
+                kw[f.name] = list(np.array(a, dtype=object)[k])
+            elif f.name == "lsm":
+                kw[f.name] = None
+            elif a is None or f.name == "scene_tv":
+                kw[f.name] = a
+            else:
+                kw[f.name] = a[k]
+        return Fine(**kw)
+
 
 def _angle(A: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(A[..., 0, 1] - A[..., 1, 0], A[..., 0, 0] + A[..., 1, 1]))
@@ -218,12 +233,14 @@ def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndar
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
-         scene_tv=0, rules=None, first=None, edges=False, fit_blur=True, tv_select=None):
+         scene_tv=0, rules=None, first=None, edges=False, fit_blur=True, tv_select=None,
+         groups=None):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
     ``first``: that first fit, when it was made already by a call with the same arguments;
-    ``tv_select``: the marks the joint scene refits, default all).
+    ``tv_select``: the marks the joint scene refits, default all; ``groups``: independent
+    sets of marks, see :func:`_refit_scene`).
     Returns ``(LSMResult, edge)``; ``edge``, with ``edges``: :func:`_footprint_gradient` over
     the fitted contrast, else (and for other marks) NaN."""
     sv = np.linalg.svd(A0, compute_uv=False)
@@ -236,7 +253,8 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     if drop_part is not None and shape.kind == "cross":
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
         u, v = patch_frame(origin, c0, A, stack.shape)
-        keep = _parts(shape, u, v) != drop_part
+        dp = np.asarray(drop_part)
+        keep = _parts(shape, u, v) != (dp[:, None, None] if dp.ndim else dp)
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
     cross = scene and shape.kind == "cross" and bool(np.isfinite(stack).all())
     top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
@@ -251,7 +269,7 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
             edge = top / np.maximum(np.abs(res.gain), 1e-6)
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
-                               rules or AcceptRules(), fit_blur, tv_select)
+                               rules or AcceptRules(), fit_blur, tv_select, groups)
     return res, edge
 
 
@@ -292,7 +310,7 @@ REFIT_SETTLE = 0.25
 
 
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
-                 fit_blur=True, select=None):
+                 fit_blur=True, select=None, groups=None):
     """LSM again with the scene under each fitted cross estimated jointly with it.
 
     ``passes`` times: the cross of the last fit (its blurred template ``T`` and its fitted grey
@@ -309,56 +327,73 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     :func:`softplot.marks.detect.detect` refuses such a scan because its measured crosses lie
     off any grid.) A cross whose refit fails, changes polarity or moves by more than
     :data:`REFIT_MAX_MOVE` keeps its last fit. ``select`` (N bool, optional): only these
-    marks are refitted (the TV weight and blur still from the whole set). Patches in the pixel
-    system (``origin`` their [0, 0] pixels).
+    marks are refitted (the TV weight and blur still from the whole set). ``groups`` (N int,
+    optional): independent sets of marks, each refitted as by a call of its own (its own TV
+    weight, blur and passes; one solve and one LSM fit for all sets that share the blur).
+    Patches in the pixel system (``origin`` their [0, 0] pixels).
     """
     n = len(res.centre)
     X = np.asarray(bg, np.float32).copy()  # the scene before the blur: the opening's to start
     moved = np.full(n, np.inf)  # px, by the last pass
+    gid = np.zeros(n, int) if groups is None else np.asarray(groups)
+    sets = [gid == v for v in np.unique(gid)]
+    alive = np.ones(n, bool)  # the sets still refitted (a set whose call would have returned)
     for p in range(passes):
         ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.s) & np.isfinite(res.noise)
         ok &= np.all(np.isfinite(res.A.reshape(n, 4)), 1)
         ok &= (np.sign(res.gain) == sign) & (res.cnr >= rules.min_cnr)
-        if not ok.any():
-            return res
         # the TV weight from the set's median noise: a patch's own residual MAD grows with the
         # scene's misfit, and TV would flatten the very scenes it is for; it and the blur
         # from all refitted crosses, not from those still moving
-        noise_set = max(float(np.median(res.noise[ok])), 1e-4)
-        s_med = float(np.median(res.s[ok]))
+        noise_set = np.zeros(n)
+        s_med = np.zeros(n)
+        for m in sets:
+            if not alive[m].any():
+                continue
+            if not (ok & m).any():
+                alive[m] = False
+                continue
+            noise_set[m] = max(float(np.median(res.noise[ok & m])), 1e-4)
+            s_med[m] = float(np.median(res.s[ok & m]))
+        ok &= alive
         if select is not None:
             ok &= select
-            if not ok.any():
-                return res
+            for m in sets:
+                alive[m] &= (ok & m).any()
         if p >= REFIT_ALL_PASSES:
             ok &= moved > REFIT_SETTLE * np.nan_to_num(res.sigma, nan=0.0)
-            if not ok.any():
-                return res
-        idx = np.where(ok)[0]
-        A = res.A[idx]
-        T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
-        g = stack[idx]
-        level = res.level[idx]
-        noise = np.full(len(idx), noise_set)
-        B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
-                                       np.hypot(s_med, np.sqrt(1 / 12)),
-                                       iters=scene_tv.iterations(p))
-        wt = _edge_weights(B, noise, REFIT_DELTA)
-        if keep is not None:
-            wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
-        # (without fit_shape the fitted affine is A0's)
-        # every refitted cross takes the first REFIT_ALL_PASSES passes: the covariance of
-        # the earlier ones (costly with the residuals' correlation) is replaced, except where
-        # a later refit is not taken (rare: that cross keeps an independent-pixel one)
-        new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=s_med, init_err=0.3,
-                  fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
-                  clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
-        move = np.hypot(*(new.centre - res.centre[idx]).T)
-        take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
-                & (move <= REFIT_MAX_MOVE))
+            for m in sets:
+                alive[m] &= (ok & m).any()
+        ok &= alive
+        if not ok.any():
+            return res
         moved[:] = 0.0
-        moved[idx[take]] = move[take]
-        res = _replace(res, idx[take], new, np.where(take)[0])
+        for sm in np.unique(s_med[ok]):  # the sets that share a blur: one solve and fit
+            idx = np.where(ok & (s_med == sm))[0]
+            A = res.A[idx]
+            T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
+            g = stack[idx]
+            level = res.level[idx]
+            noise = noise_set[idx]
+            B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
+                                           np.hypot(sm, np.sqrt(1 / 12)),
+                                           iters=scene_tv.iterations(p))
+            wt = _edge_weights(B, noise, REFIT_DELTA)
+            if keep is not None:
+                wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
+            # (without fit_shape the fitted affine is A0's)
+            # every refitted cross takes the first REFIT_ALL_PASSES passes: the covariance of
+            # the earlier ones (costly with the residuals' correlation) is replaced, except
+            # where a later refit is not taken (rare: that cross keeps an independent-pixel
+            # one)
+            new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=float(sm), init_err=0.3,
+                      fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
+                      clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
+            move = np.hypot(*(new.centre - res.centre[idx]).T)
+            take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
+                    & (move <= REFIT_MAX_MOVE))
+            moved[idx[take]] = move[take]
+            res = _replace(res, idx[take], new, np.where(take)[0])
     return res
 
 
@@ -456,6 +491,68 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
     return ok, reason
 
 
+def _chunks(idx, sets, chunk):
+    """The marks ``idx`` in chunks of at most ``chunk`` of each set (``sets`` (N,) int), each
+    set split as a call of its own would split it; the j-th chunk of every set together."""
+    subs = []
+    for v in np.unique(sets[idx]):
+        k = idx[sets[idx] == v]
+        subs.append(np.array_split(k, -(-k.size // max(1, int(chunk)))))
+    if len(subs) == 1:
+        return subs[0]
+    return [np.concatenate([x[j] for x in subs if j < len(x)])
+            for j in range(max(len(x) for x in subs))]
+
+
+def _take(res: LSMResult, k: np.ndarray) -> LSMResult:
+    """The marks ``k`` of ``res``."""
+    return LSMResult(**{f.name: (getattr(res, f.name) if f.name == "iterations"
+                                 or getattr(res, f.name) is None else getattr(res, f.name)[k])
+                        for f in fields(LSMResult)})
+
+
+def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets):
+    """:func:`_accept` of each set of marks (``sets`` (N,) int) on its own."""
+    vals = np.unique(sets)
+    if len(vals) == 1:
+        return _accept(res, c0, A0, s0, sign, rules, anchor, max_shift)
+    ok = np.zeros(len(c0), bool)
+    why = [""] * len(c0)
+    for v in vals:
+        k = np.where(sets == v)[0]
+        o, w = _accept(_take(res, k), c0[k], A0[k], s0, sign, rules, anchor[k], max_shift)
+        ok[k] = o
+        for j, i in enumerate(k):
+            why[i] = w[j]
+    return ok, why
+
+
+def _merge_fine(n, pieces) -> Fine:
+    """One :class:`Fine` of N marks from ``(indices, Fine)`` pieces."""
+    f0 = pieces[0][1]
+    kw = {}
+    for f in fields(Fine):
+        a = getattr(f0, f.name)
+        if f.name == "lsm":
+            kw[f.name] = None
+        elif f.name == "scene_tv":
+            kw[f.name] = max(getattr(p, f.name) for _, p in pieces)
+        elif f.name == "reason":
+            r = [""] * n
+            for k, p in pieces:
+                for j, i in enumerate(k):
+                    r[i] = p.reason[j]
+            kw[f.name] = r
+        elif a is None:
+            kw[f.name] = None
+        else:
+            out = np.zeros((n,) + a.shape[1:], a.dtype)
+            for k, p in pieces:
+                out[k] = getattr(p, f.name)
+            kw[f.name] = out
+    return Fine(**kw)
+
+
 def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
@@ -490,9 +587,11 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     anchor, max_shift : (N, 2) and float, optional
         A fitted centre farther than ``max_shift`` px from ``anchor`` (the model's prediction)
         is not accepted; default ``c0`` and ``max_shift_factor * init_err + 1``.
-    drop_part : int, optional
+    drop_part : int or (N,) int, optional
         Crosses only: one half-arm (0: +u, 1: +v, 2: -u, 3: -v of the mark frame) gets weight
-        0, so the mark is measured from the other three.
+        0, so the mark is measured from the other three. Per mark: the marks of each value
+        are measured as by a call of their own (their own chunks, acceptance tests and joint
+        scene's TV weight), batched into common fits where the blur is held (``blur``).
     blur : float, optional
         Hold the blur at this value (px) in every fit instead of estimating it.
     scene_tv : int
@@ -518,6 +617,22 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     if anchor is None:
         anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
     anchor = np.asarray(anchor, float).reshape(-1, 2)
+    sets = np.zeros(n, int)
+    if drop_part is not None and np.ndim(drop_part):
+        drop_part = np.asarray(drop_part).reshape(n)
+        vals, sets = np.unique(drop_part, return_inverse=True)
+        if len(vals) == 1:
+            drop_part = int(vals[0])
+        elif fit_blur or (auto_tv and not scene_tv):
+            # each set's own blur (or choice of scene model): one call per set
+            out = []
+            for v in vals:
+                k = np.where(drop_part == v)[0]
+                out.append((k, measure(scan, shape, c0[k], A0[k], s0, init_err, sign, rules,
+                                       fit_shape, scene, anchor[k], max_shift, chunk, int(v),
+                                       scene_tv, auto_tv, busy, blur)))
+            return _merge_fine(n, out)
+    multi = sets.max() > 0
     xy = np.full((n, 2), np.nan)
     cov = np.full((n, 2, 2), np.nan)
     cov_w = np.full((n, 2, 2), np.nan)
@@ -544,19 +659,22 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
 
         def run(k, starts=starts, ie=ie, tv=scene_tv, want=want, s0=s0, fb=fit_blur):
             return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part, tv, rules, edges=want, fit_blur=fb)
+                        drop_part[k] if multi else drop_part, tv, rules, edges=want,
+                        fit_blur=fb, groups=sets[k] if multi else None)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        parts = np.array_split(idx, -(-idx.size // max(1, int(chunk))))
+        parts = _chunks(idx, sets, chunk)
+        idx = np.concatenate(parts)  # (the order of the chunks, set by set)
         out = thread_map(run, parts)
         res = _concat([o[0] for o in out])
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
-        good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx], max_shift)
+        good, why = _accept_sets(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
+                                 max_shift, sets[idx])
         if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
