@@ -42,7 +42,7 @@ kernels' loading included) against one scan per process, per scan.
 Usage::
 
     .venv/bin/python tools/bench_detect.py [--runs 5] [--cases rollei-2400,rollei-1200,aerial-19k]
-    .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8]
+    .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8] [--threads 1]
 """
 
 from __future__ import annotations
@@ -200,14 +200,16 @@ def _load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
 
 
-def busy(runs: int, batch: int) -> None:
+def busy(runs: int, batch: int, n_threads: int | None = None) -> None:
     """The busy-scene figures (see the module docstring)."""
     from softplot.io import load_scan
     from softplot.marks import detect, kernels
-    from softplot.runtime import threads, tune_allocator
+    from softplot.runtime import set_threads, threads, tune_allocator
     from softplot.synthetic import ScanSpec, write_scan
 
     tune_allocator()  # as the softplot command does
+    if n_threads:
+        set_threads(n_threads)
     kernels.load()
     variants = {"auto (default)": "auto", "joint on every cross": "joint"}
     print(f"load average at start: {_load()} (2 cores; figures taken above 1 are provisional); "
@@ -230,7 +232,8 @@ def busy(runs: int, batch: int) -> None:
             for k, v in times.items():
                 print(f"busy {dpi} dpi, {k}: load + detect median {statistics.median(v):.3f} s "
                       f"(min {min(v):.3f}, n={len(v)}); CPU median "
-                      f"{statistics.median(cpu[k]):.3f} s; scene model {det.scene}")
+                      f"{statistics.median(cpu[k]):.3f} s (min {min(cpu[k]):.3f}); "
+                      f"scene model {det.scene}")
         if batch:
             paths = [write_scan(d, "rollei-6006", ScanSpec(dpi=1200, rotation_deg=1.5,
                                                             scene="busy"), seed=100 + i,
@@ -255,13 +258,16 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--busy", action="store_true", help="the busy-scene figures only")
     ap.add_argument("--batch", type=int, default=8, help="scans of the --busy batch run")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="--busy: threads of the detections timed in this process (default: "
+                         "SOFTPLOT_THREADS or the cores, at most 2)")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         child(*a.child)
         return
     if a.busy:
-        busy(a.runs, a.batch)
+        busy(a.runs, a.batch, a.threads)
         return
     cases = [c for c in a.cases.split(",") if c]
     from softplot.io import load_scan

@@ -493,15 +493,19 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
 
 def _chunks(idx, sets, chunk):
     """The marks ``idx`` in chunks of at most ``chunk`` of each set (``sets`` (N,) int), each
-    set split as a call of its own would split it; the j-th chunk of every set together."""
+    set split as a call of its own would split it; the j-th chunks of the first and of the
+    second half of the sets together (two chunks: work for two threads; the sets are
+    independent, so the results do not depend on how they are packed)."""
     subs = []
     for v in np.unique(sets[idx]):
         k = idx[sets[idx] == v]
         subs.append(np.array_split(k, -(-k.size // max(1, int(chunk)))))
     if len(subs) == 1:
         return subs[0]
-    return [np.concatenate([x[j] for x in subs if j < len(x)])
-            for j in range(max(len(x) for x in subs))]
+    h = -(-len(subs) // 2)
+    return [np.concatenate([x[j] for x in half if j < len(x)])
+            for half in (subs[:h], subs[h:])
+            for j in range(max(len(x) for x in half))]
 
 
 def _take(res: LSMResult, k: np.ndarray) -> LSMResult:
