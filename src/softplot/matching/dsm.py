@@ -374,7 +374,8 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         c_s = cons.rows(a0, a1)
         d0 = np.where(c_s, D0, 0.0).astype(np.float32)
         d, corr, energy, share, s02, kappa = refine_disparity(
-            Lf, Rf, d0, c_s, opt.window, wl=1.0 - mkl, wr=1.0 - mkr, smooth=opt.window)
+            Lf, Rf, d0, c_s, opt.window, wl=(~mkl).astype(np.float32), wr=(~mkr).astype(np.float32),
+            smooth=opt.window)
         del Lf, Rf, D0, mkl, mkr
         k0, k1 = r0 - a0, r1 - a0
         n_cons += int(np.count_nonzero(c_s[k0:k1]))
@@ -434,8 +435,8 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
             diag[k] = np.vstack(diag[k])
         diag["points"] = (np.vstack(Pz), np.concatenate(Sz))
     dsm = _grid(Pz, Sz, gsd, opt.min_points, window=opt.window)
-    dsm = fill_small_holes(dsm, opt.fill_radius)
     del Pz, Sz
+    dsm = fill_small_holes(dsm, opt.fill_radius)
     sm = np.concatenate(sig_med) if sig_med else np.zeros(0)
     dsm.info.update({
         "pixels_matched": n_cons, "pixels_valid": n_ok, "pixels_left": n_left,
@@ -592,28 +593,28 @@ def refine_disparity(L, R, d, valid, window: int = 9, iterations: int = 3, wl=No
         den = cv2.boxFilter(vm, -1, sk, normalize=True)
         return np.where(den > 0.2, num / np.maximum(den, 1e-6), d).astype(np.float32)
 
-    for _ in range(iterations):
+    for it in range(iterations + 1):
         D = field(d)
         w, sw, Lc, Rc, gc = terms(D)
-        num = box(w * (Lc - Rc) * gc)
+        r0 = Lc - Rc
+        num = box(w * r0 * gc)
         den = box(w * gc * gc)
         step = np.where(valid, -num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
         d = np.where(valid, D + np.clip(step, -1.0, 1.0), d).astype(np.float32)
-    D = field(d)
-    w, sw, Lc, Rc, gc = terms(D)
-    r0 = Lc - Rc
-    num = box(w * r0 * gc)
-    den = box(w * gc * gc)
-    step = np.where(valid, -num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
-    d = np.where(valid, D + np.clip(step, -1.0, 1.0), d).astype(np.float32)
+        del D
+        if it < iterations:  # the temporaries go before the next warp is made
+            del w, sw, Lc, Rc, gc, r0, num, den, step
     corr = box(w * Lc * Rc) / np.sqrt(np.maximum(box(w * Lc * Lc) * box(w * Rc * Rc), 1e-12))
-    energy = den * (window * window)
+    del Lc, Rc
+    energy = den * np.float32(window * window)
     # a posteriori variance of a grey value difference in the window after the shift
     # (both images' noise and what the model misses), 2 parameters (shift, mean) estimated
-    nw = np.maximum(sw * (window * window), 3.0)
+    nw = np.maximum(sw * np.float32(window * window), np.float32(3.0))
     s02 = np.maximum(box(w * r0 * r0) - num * num / np.maximum(den, 1e-12), 0.0) / sw \
-        * (nw / (nw - 2.0))
-    kappa = _correlation_factor(r0 + gc * step, gc, valid)
+        * (nw / (nw - np.float32(2.0)))
+    del nw, num, w
+    r0 += gc * step
+    kappa = _correlation_factor(r0, gc, valid)
     return d, corr, energy, sw, s02, kappa
 
 
@@ -823,33 +824,53 @@ def fill_small_holes(dsm: DSM, radius: int = 2, max_misfit: float = 3.0) -> DSM:
     if not V.any():
         dsm.info["cells_interpolated"] = 0
         return dsm
-    z_ref = float(np.nanmedian(Z))
-    Vf = V.astype(np.float64)
-    Zf = np.where(V, Z - z_ref, 0.0)
-    S2 = np.where(V, S.astype(np.float64) ** 2, 0.0)
-    r = np.arange(-radius, radius + 1, dtype=np.float64)
-    dy, dx = np.meshgrid(r, r, indexing="ij")
-    w = np.where((dx == 0) & (dy == 0), 0.0, 1.0 / np.maximum(dx * dx + dy * dy, 1.0))
+    h, w = Z.shape
+    offs = [(dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)
+            if (dy, dx) != (0, 0)]
 
-    def corr(img, k):  # sum over the window of k(offset) img(cell + offset)
-        return cv2.filter2D(np.asarray(img, np.float64), cv2.CV_64F, k,
-                            borderType=cv2.BORDER_CONSTANT)
+    def shifted(a, dy, dx, fill):
+        """a[r + dy, c + dx] for every cell (``fill`` beyond the grid)."""
+        out = np.full_like(a, fill)
+        out[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)] = \
+            a[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
+        return out
 
-    # valid cells on both sides along both axes (rows: dy, columns: dx)
-    sides = [corr(Vf, ((dx < 0) & (w > 0)).astype(np.float64)), corr(Vf, (dx > 0) * 1.0),
-             corr(Vf, (dy < 0) * 1.0), corr(Vf, (dy > 0) * 1.0)]
-    cand = ~V & np.all(np.stack(sides) > 0, axis=0) & (corr(Vf, (w > 0) * 1.0)
-                                                         > 0.5 * (w > 0).sum())
+    # candidates: valid cells on both sides along both axes (rows: dy, columns: dx), more
+    # than half of the cells around valid
+    count = np.zeros(Z.shape, np.uint8)
+    sides = np.zeros((4,) + Z.shape, bool)
+    for dy, dx in offs:
+        v = shifted(V, dy, dx, False)
+        count += v
+        for j, on in enumerate((dx < 0, dx > 0, dy < 0, dy > 0)):
+            if on:
+                sides[j] |= v
+    cand = ~V & sides.all(axis=0) & (count > len(offs) // 2)
+    del count, sides
     if not cand.any():
         dsm.info["cells_interpolated"] = 0
         return dsm
-    sums = {}
-    for name, img, k in (("w", Vf, w), ("x", Vf, w * dx), ("y", Vf, w * dy),
-                         ("xx", Vf, w * dx * dx), ("xy", Vf, w * dx * dy),
-                         ("yy", Vf, w * dy * dy), ("z", Zf, w), ("zx", Zf, w * dx),
-                         ("zy", Zf, w * dy), ("zz", Zf * Zf, w), ("s2", S2, w),
-                         ("n", Vf, (w > 0) * 1.0)):
-        sums[name] = corr(img, k)[cand]
+    rr, cc = np.nonzero(cand)
+    z_ref = float(np.nanmedian(Z))
+    # weighted sums (weights 1 / distance^2) over the cells around each candidate
+    names = ("w", "x", "y", "xx", "xy", "yy", "z", "zx", "zy", "zz", "s2", "n")
+    sums = {k: np.zeros(len(rr)) for k in names}
+    for dy, dx in offs:
+        r2, c2 = rr + dy, cc + dx
+        inside = (r2 >= 0) & (r2 < h) & (c2 >= 0) & (c2 < w)
+        r2, c2 = np.clip(r2, 0, h - 1), np.clip(c2, 0, w - 1)
+        v = inside & V[r2, c2]
+        z = np.where(v, Z[r2, c2].astype(np.float64) - z_ref, 0.0)
+        wt = v / float(dx * dx + dy * dy)
+        for k, t in (("w", 1.0), ("x", dx), ("y", dy), ("xx", dx * dx), ("xy", dx * dy),
+                     ("yy", dy * dy)):
+            sums[k] += wt * t
+        sums["z"] += wt * z
+        sums["zx"] += wt * z * dx
+        sums["zy"] += wt * z * dy
+        sums["zz"] += wt * z * z
+        sums["s2"] += wt * np.where(v, S[r2, c2].astype(np.float64) ** 2, 0.0)
+        sums["n"] += v
     M = np.stack([np.stack([sums["w"], sums["x"], sums["y"]], -1),
                   np.stack([sums["x"], sums["xx"], sums["xy"]], -1),
                   np.stack([sums["y"], sums["xy"], sums["yy"]], -1)], 1)
@@ -863,7 +884,6 @@ def fill_small_holes(dsm: DSM, radius: int = 2, max_misfit: float = 3.0) -> DSM:
     s_fit = np.sqrt(np.maximum(ssr, 0.0) / sums["w"] * n / np.maximum(n - 3.0, 1.0))
     s_nb = np.sqrt(sums["s2"] / sums["w"])
     ok = good & np.isfinite(sol[:, 0]) & (s_fit <= max_misfit * s_nb)
-    rr, cc = np.nonzero(cand)
     Zo, So = Z.copy(), S.copy()
     Zo[rr[ok], cc[ok]] = (sol[ok, 0] + z_ref).astype(np.float32)
     So[rr[ok], cc[ok]] = np.maximum(s_nb[ok], s_fit[ok]).astype(np.float32)
