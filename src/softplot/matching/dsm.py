@@ -23,7 +23,9 @@
    cell does not bias it) evaluated at the cell centre; cells with fewer than
    ``min_points`` points are no-data. The cell's precision: the points' height variance
    times the mean correlation of their errors (neighbouring matching windows share pixels:
-   :func:`_mean_correlation`). Nothing is interpolated into empty cells.
+   :func:`_mean_correlation`);
+7. holes of 1-2 cells surrounded by valid cells that lie on a plane are interpolated
+   (:func:`fill_small_holes`); larger holes (occlusions, blank areas) stay no-data.
 
 Grid: object X east, Y north (m); row 0 is the northernmost row; ``x0``, ``y0`` are the
 object X, Y of the centre of the top-left cell; rows run towards -Y.
