@@ -12,8 +12,13 @@ each cross's mark frame (u along film x, v along film -y, nominal px: film mm x 
 * across each bar, between its ends and away from the other bar: the mean profile, fitted
   with a box of width ``w`` blurred by that ``s``.
 
-Each bar of each cross is one estimate; the scan's value is the median over the crosses, its
-spread the robust standard deviation (1.4826 x MAD) over them. Bars without contrast (one-armed
+The profiles of the bars (each normalised by its own contrast) are combined sample by sample
+by their median, and the scan's values are the fits to that median profile: a thin line
+under a wide blur has little contrast per sample, and the median ignores the few bars that
+scene content, a fault or a larger centre cross make different. Each bar is also fitted
+alone: the spread reported is the robust standard deviation (1.4826 x MAD) of those fits, and
+their median must agree with the median profile's length (else the profiles follow scene
+content along the bars and the starting guess stands). Bars without contrast (one-armed
 crosses, crosses under a dark sky) are left out.
 """
 
@@ -23,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import map_coordinates, uniform_filter1d
-from scipy.special import ndtr
+from scipy.special import erf, ndtr
 
 from softplot.marks.template import MarkShape
 
@@ -42,7 +47,12 @@ WIDTH_RESOLVED = 1.5
 #: crosses is at most this fraction of it
 CONSISTENT = (0.1, 0.5)
 #: profiles and guess agree on the arm length within this fraction: the guess stands
-ARM_AGREE = 0.15
+ARM_AGREE = 0.05
+#: the median of the bars' own arm lengths agrees with their median profile's within
+#: ``CONSISTENT[0]`` of it or this many px (short arms), else the profiles are not the marks'
+ARM_AGREE_PX = 2.0
+#: a line wider than this fraction of the arm length is not a cross's: not measured
+MAX_WIDTH = 0.35
 #: profiles and guess agree on the line width within these ratios
 WIDTH_AGREE = (0.8, 1.25)
 
@@ -141,15 +151,23 @@ def _lm(resid_jac, p, lo, hi, iterations=30):
     return p if np.isfinite(p).all() else None
 
 
-def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float = 0.0):
-    """Blurred box along a bar: (a1, a2, s, c) or None. Samples within ``centre`` of the
-    middle are left out of the fit: where the bars cross, a thin blurred line is darker than
-    along its arms (the other bar's blur adds), which the box does not model."""
+def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float = 0.0,
+               s0: float = 1.0, width: float = 1.0):
+    """Blurred box along a bar: (a1, a2, s, c) or None. Where the bars cross, a thin
+    blurred line is darker than along its arms (the other bar's blur adds): the model adds
+    the other bar's cross-section (a line of ``width`` px, blurred alike) with a free level,
+    and the arm's starting level is read beyond ``centre`` px of the middle. ``s0``: the
+    starting blur (px)."""
     du = float(u[1] - u[0])
     ps = uniform_filter1d(p, max(1, int(round(1.0 / du))))
     b0 = float(np.median(np.concatenate([ps[: len(ps) // 8], ps[-len(ps) // 8:]])))
-    mid = np.abs(u) <= max(lo, 2.0)
-    c0 = float(np.median(ps[mid])) - b0
+    # the arm's level beside the crossing (where a thin blurred line is darker)
+    au = np.abs(u)
+    c_mid = float(np.median(ps[au <= max(lo, 2.0)])) - b0
+    ring = (au <= max(lo, 2.0) + centre) & (au >= centre)
+    c0 = float(np.median(ps[ring])) - b0 if ring.sum() >= 2 else c_mid
+    if not c0 > 0.3 * c_mid:  # the arms are shorter than the crossing's reach
+        c0 = c_mid
     if not c0 > 0:
         return None
     half = ps - b0 > 0.5 * c0
@@ -165,18 +183,30 @@ def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float
     a1, a2 = float(u[left]), float(u[r])
     if a2 - a1 < 2.0 * lo * 0.8 or a2 - a1 > 2.0 * hi:
         return None
-
-    m = (np.abs(u) >= centre).astype(float)
+    h = 0.5 * max(width, 0.05)
+    # the crossing's excess over the arm, per unit arm level, is 1 / P0 - 1 (P0: a line's
+    # blurred peak over its full level); at most that of a line half as wide as ``width``
+    # at the starting blur
+    s_i = float(np.clip(s0, 0.3, 10.0))
+    k_max = 1.0 / max(float(erf(0.5 * h / (s_i * np.sqrt(2.0)))), 1e-3) - 1.0
 
     def rj(q):
-        f, J = _box_jac(u, *q)
-        return (f - p) * m, J * m[:, None]
+        f, J = _box_jac(u, *q[:5])
+        # the other bar where it crosses: its cross-section, blurred alike, at k x the level
+        zp, zm = (u + h) / q[4], (u - h) / q[4]
+        L = ndtr(zp) - ndtr(zm)
+        gp = np.exp(-0.5 * zp * zp) / np.sqrt(2.0 * np.pi)
+        gm = np.exp(-0.5 * zm * zm) / np.sqrt(2.0 * np.pi)
+        J = np.concatenate([J, (q[1] * L)[:, None]], 1)
+        J[:, 1] += q[5] * L
+        J[:, 4] += -q[1] * q[5] * (zp * gp - zm * gm) / q[4]
+        return f + q[1] * q[5] * L - p, J
 
-    q = _lm(rj, [b0, c0, a1, a2, 1.0], [-np.inf, 0.0, u[0], 0.0, 0.3],
-            [np.inf, np.inf, 0.0, u[-1], 10.0])
+    q = _lm(rj, [b0, c0, a1, a2, s_i, 0.0],
+            [-np.inf, 0.0, u[0], 0.0, 0.3, 0.0], [np.inf, np.inf, 0.0, u[-1], 10.0, k_max])
     if q is None:
         return None
-    b, c, a1, a2, s = q
+    b, c, a1, a2, s, _ = q
     return a1, a2, s, c
 
 
@@ -245,70 +275,131 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     u = np.arange(-H, H + 1e-9, du)
     v = np.arange(-V, V + 1e-9, dv)
     lo_half = 0.5 * ARM_RANGE[0] * L0
-    arms, widths, blurs = [], [], []
-    for i in order:
-        Ai = np.linalg.inv(A[i])  # mark frame -> pixel offsets
-        reach = np.abs(Ai).sum(1) * (H + V) + 3.0
-        x0, y0 = xy[i]
-        c0 = int(np.floor(x0 - reach[0]))
-        r0 = int(np.floor(y0 - reach[1]))
-        c1 = int(np.ceil(x0 + reach[0])) + 1
-        r1 = int(np.ceil(y0 + reach[1])) + 1
-        try:
-            win = grey_at((slice(max(r0, 0), max(r1, 0)), slice(max(c0, 0), max(c1, 0))))
-        except (ValueError, IndexError):
-            continue
-        if win.size == 0 or win.shape != (r1 - r0, c1 - c0):
-            continue  # the profiles leave the scan
-        win = sign * np.asarray(win, np.float32)
-        for bar in (0, 1):  # 0: the bar along u (film x), 1: along v
-            uu, vv = np.meshgrid(u, v, indexing="xy")  # (len(v), len(u)): rows across
-            m = np.stack([uu, vv]) if bar == 0 else np.stack([vv, uu])
-            px = Ai @ m.reshape(2, -1)
-            s = map_coordinates(win, [px[1] + y0 - r0, px[0] + x0 - c0], order=1,
-                                mode="nearest").reshape(uu.shape)
-            # the bar's position across (coarse centres are off by up to a few px)
-            # (the other bar adds the same to every v within its width: no bias)
-            inner = np.abs(u) <= max(lo_half, 3.0)
-            q = uniform_filter1d(s[:, inner].mean(1), max(1, int(round(0.5 * w0 / dv))))
-            vc = float(v[int(np.argmax(q))])
-            band = np.abs(v - vc) <= max(0.5 * w0, 0.75)
-            fl = _fit_along(u, s[band].mean(0), lo_half, 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0,
-                            centre=min(1.5 * w0 + 2.0, 0.6 * lo_half))
-            if fl is None:
-                continue
-            a1, a2, sb, cb = fl
-            # across profile between the bar's ends, away from the other bar
-            sel = ((u > a1 + 1.5 * sb) & (u < a2 - 1.5 * sb)
-                   & (np.abs(u - 0.5 * (a1 + a2)) > 0.5 * w0 + 1.5 * sb))
-            if sel.sum() < 3:
-                continue
-            fw = _fit_across(v, s[:, sel].mean(1), sb, w0)
-            if fw is None:
-                continue
-            arms.append(a2 - a1)
-            widths.append(fw[0])
-            blurs.append((cb, sb))
-    arms_a, widths_a = np.asarray(arms), np.asarray(widths)
-    blur_a = np.asarray(blurs).reshape(-1, 2)[:, 1]
-    if len(arms_a) >= 2:
-        c = np.asarray(blurs)[:, 0]
-        keep = c >= 0.3 * np.median(c)  # bars without contrast: one-armed or dark crosses
-        arms_a, widths_a, blur_a = arms_a[keep], widths_a[keep], blur_a[keep]
-    if len(arms_a) < 2:
-        return MarkGeometry(L0, w0, float("nan"), float("nan"), int(len(arms_a)), "certificate")
-    w = float(np.median(widths_a))
-    sb = float(np.median(blur_a))
-    arm, sa, sw = float(np.median(arms_a)), _robust_std(arms_a), _robust_std(widths_a)
-    if not sa <= CONSISTENT[0] * arm:
-        # the crosses disagree about their size: scene content along the bars, not the marks
-        return MarkGeometry(L0, w0, sa, sw, int(len(arms_a)), "certificate")
+    hi_half = 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0
+    centre = min(1.5 * w0 + 2.0, 0.6 * lo_half)
+    bars = [_bar_profiles(grey_at, xy[i], A[i], u, v, w0, lo_half, sign, H, V)
+            for i in order]
+    bars = [b for pair in bars if pair is not None for b in pair if b is not None]
+    if bars:
+        # the blurred line's half width at half maximum across the bars: the blur it
+        # implies (a Gaussian's is 1.18 sigma) starts the fits, and the crossing, darker
+        # over about that reach plus two sigmas, is left out of them
+        hw = float(np.median([b[3] for b in bars]))
+        s_g = max(hw / 1.18, 0.5)
+        centre = max(centre, hw + 1.5 * s_g)
+    else:
+        s_g = 1.0
+    if len(bars) >= 2:
+        c = np.array([b[2] for b in bars])
+        # bars without contrast (one-armed crosses, crosses under a dark sky) are left out
+        bars = [b for b, ck in zip(bars, c, strict=True) if ck >= 0.3 * np.median(c)]
+    if len(bars) < 2:
+        return MarkGeometry(L0, w0, float("nan"), float("nan"), len(bars), "certificate")
+    # one fit to the median of the bars' normalised profiles: robust to the few bars that
+    # scene content, a fault or a larger centre cross make different, and far less noisy
+    # than each bar alone (a thin line under a wide blur has little contrast per sample)
+    fl = _fit_along(u, _median_profile([b[0] / b[2] for b in bars]), lo_half, hi_half,
+                    centre=centre, s0=s_g, width=w0)
+    if fl is None:
+        return MarkGeometry(L0, w0, float("nan"), float("nan"), len(bars), "certificate")
+    a1, a2, sb, _ = fl
+    arm = a2 - a1
+    # each bar alone: the spread over the scan
+    one = [_fit_along(u, b[0] / b[2], lo_half, hi_half, centre=centre, s0=s_g, width=w0)
+           for b in bars]
+    arms_a = np.array([f[1] - f[0] for f in one if f is not None])
+    sa = _robust_std(arms_a)
+    if len(arms_a) < 3 or not abs(float(np.median(arms_a)) - arm) <= max(
+            CONSISTENT[0] * arm, ARM_AGREE_PX):
+        # the bars alone do not agree with their median profile: scene content along the
+        # bars, not the marks
+        return MarkGeometry(L0, w0, sa, float("nan"), len(bars), "certificate")
+    # across each bar, between its ends and away from the other bar (where the bars are
+    # too short for that, beside the other bar only)
+    sel = (u > a1 + 1.5 * sb) & (u < a2 - 1.5 * sb) & (np.abs(u - 0.5 * (a1 + a2))
+                                                        > 0.5 * w0 + 1.5 * sb)
+    if sel.sum() < 3:
+        sel = (u > a1 + 0.5 * sb) & (u < a2 - 0.5 * sb) & (np.abs(u) > 0.5 * w0 + sb)
+    w, sw = float("nan"), float("nan")
+    if sel.sum() >= 3:
+        acr = [b[1][:, sel].mean(1) for b in bars]
+        fits = [_fit_across(v, q, sb, w0) for q in acr]
+        widths_a = np.array([f[0] for f in fits if f is not None])
+        sw = _robust_std(widths_a)
+        # the bars' across profiles centred (each on its own fitted centre) and normalised
+        fm = []
+        for q, f in zip(acr, fits, strict=True):
+            if f is not None and f[2] > 0:
+                b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+                fm.append(np.interp(v + f[1], v, (q - b0) / f[2]))
+        fw = _fit_across(v, _median_profile(fm), sb, w0) if len(fm) >= 2 else None
+        if fw is not None:
+            w = float(fw[0])
+        if (len(widths_a) >= 3 and not sw <= CONSISTENT[1] * w) or not w <= MAX_WIDTH * arm:
+            w = float("nan")  # the width is not measured: the guess stands
     if abs(arm / L0 - 1.0) <= ARM_AGREE:
         # within what a busy scene's profiles miss by: the guess stands
         arm = L0
-    if not sw <= CONSISTENT[1] * w:
-        w = float("nan")  # the width is not measured: the guess stands (width_candidates)
-    return MarkGeometry(arm, w, sa, sw, int(len(arms_a)), "scan", blur_px=sb)
+    return MarkGeometry(float(arm), w, sa, sw, len(bars), "scan", blur_px=float(sb))
+
+
+def _median_profile(profiles: list) -> np.ndarray:
+    """The sample-wise median of equally sampled profiles."""
+    return np.median(np.stack(profiles), axis=0)
+
+
+def _bar_profiles(grey_at, xy, A, u, v, w0, lo_half, sign, H, V):
+    """The two bars' profiles of the cross at ``xy`` (pixel system; ``A`` its pixel ->
+    mark-frame affine): for each bar ``(along, grid, contrast, half width)``, ``along`` the
+    mean over a band across the bar (as long as ``u``, background removed), ``grid`` the
+    samples (len(v), len(u)) with the bar along ``u``, ``contrast`` the bar's level over the
+    background near the centre, ``half width`` the blurred line's at half maximum (px);
+    None for a bar without contrast, None for both where the profiles leave the scan."""
+    Ai = np.linalg.inv(A)  # mark frame -> pixel offsets
+    reach = np.abs(Ai).sum(1) * (H + V) + 3.0
+    x0, y0 = xy
+    c0 = int(np.floor(x0 - reach[0]))
+    r0 = int(np.floor(y0 - reach[1]))
+    c1 = int(np.ceil(x0 + reach[0])) + 1
+    r1 = int(np.ceil(y0 + reach[1])) + 1
+    try:
+        win = grey_at((slice(max(r0, 0), max(r1, 0)), slice(max(c0, 0), max(c1, 0))))
+    except (ValueError, IndexError):
+        return None
+    if win.size == 0 or win.shape != (r1 - r0, c1 - c0):
+        return None  # the profiles leave the scan
+    win = sign * np.asarray(win, np.float32)
+    dv = float(v[1] - v[0])
+    out = []
+    for bar in (0, 1):  # 0: the bar along u (film x), 1: along v
+        uu, vv = np.meshgrid(u, v, indexing="xy")  # (len(v), len(u)): rows across
+        m = np.stack([uu, vv]) if bar == 0 else np.stack([vv, uu])
+        px = Ai @ m.reshape(2, -1)
+        s = map_coordinates(win, [px[1] + y0 - r0, px[0] + x0 - c0], order=1,
+                            mode="nearest").reshape(uu.shape)
+        # the bar's position across (coarse centres are off by up to a few px)
+        # (the other bar adds the same to every v within its width: no bias)
+        inner = np.abs(u) <= max(lo_half, 3.0)
+        q = uniform_filter1d(s[:, inner].mean(1), max(1, int(round(0.5 * w0 / dv))))
+        j = int(np.argmax(q))
+        vc = float(v[j])
+        # the band across the bar: the blurred line's half maximum (a thin line under a
+        # wide blur is several pixels wide), at least the drawn line
+        qb = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+        half = q - qb > 0.5 * (q[j] - qb)
+        lo_j, hi_j = j, j
+        while lo_j > 0 and half[lo_j - 1]:
+            lo_j -= 1
+        while hi_j + 1 < len(q) and half[hi_j + 1]:
+            hi_j += 1
+        bw = float(np.clip(0.5 * (v[hi_j] - v[lo_j]), max(0.5 * w0, 0.75), 0.5 * w0 + 4.0))
+        band = np.abs(v - vc) <= bw
+        p = s[band].mean(0)
+        n8 = max(len(p) // 8, 1)
+        b0 = float(np.median(np.concatenate([p[:n8], p[-n8:]])))
+        c = float(np.median(p[np.abs(u) <= max(lo_half, 2.0)])) - b0
+        out.append((p - b0, s, c, 0.5 * (v[hi_j] - v[lo_j])) if c > 0 else None)
+    return out
 
 
 def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
