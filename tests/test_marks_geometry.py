@@ -128,12 +128,11 @@ BLURRED = [("rollei-6006", 423, 1.9, 0.78, 0.9), ("rollei-6006", 500, 2.3, 1.7, 
            ("hasselblad-mk70", 470, 2.4, 1.9, 0.75), ("rollei-6006", 600, 2.0, 2.2, 0.6)]
 
 
-@pytest.mark.parametrize("case", sweep(BLURRED, 2))
-def test_arm_length_of_thin_lines_under_a_wide_blur(case):
-    cam, dpi, blur, arm, width = case
+@pytest.mark.parametrize("cam,dpi,blur,arm,width", sweep(BLURRED, 2))
+def test_arm_length_of_thin_lines_under_a_wide_blur(cam, dpi, blur, arm, width):
     spec = ScanSpec(dpi=dpi, blur_sigma_px=blur, mark_arm_scale=arm, mark_width_scale=width,
                     noise_sigma=0.01, rotation_deg=0.4, scene="texture")
-    img, truth = render_scan(cam, spec, BLURRED.index(case) + 1)
+    img, truth = render_scan(cam, spec, BLURRED.index((cam, dpi, blur, arm, width)) + 1)
     det = detect(Scan.from_array(img, dpi=dpi), cam)
     g = det.mark_geometry
     true_arm = load_camera(cam).reseau.arm_length_mm * arm
