@@ -84,6 +84,11 @@ class Detection:
         Reseau crosses: the bars a measured cross was measured with, 2 (a whole cross) or 1
         (only one bar visible: its position across the bar is measured, along it the
         position is the prediction and its variance in ``cov`` large); 0 where not measured.
+    variance_factor : float
+        The factor (at least 1) by which the crosses' covariances were enlarged because their
+        departures from their neighbours showed larger errors than the least-squares
+        covariances (:mod:`softplot.marks.precision`); ``cov``, ``sigma`` and ``sigma_xy``
+        include it.
     """
 
     image: str
@@ -114,6 +119,7 @@ class Detection:
     mark_geometry: dict | None = None
     cov: np.ndarray | None = None
     arms: np.ndarray | None = None
+    variance_factor: float = 1.0
 
     @property
     def measured(self) -> np.ndarray:
@@ -173,6 +179,7 @@ class Detection:
             "dpi_source": self.dpi_source,
             "polarity": self.polarity,
             "scene": self.scene,
+            "variance_factor": _num(self.variance_factor, 4),
             "marks": marks,
             "transform": self.transform,
             "rms_px": _num(self.rms_px, 5),

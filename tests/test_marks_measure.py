@@ -1,0 +1,65 @@
+"""Measurement and validation of the crosses: honest covariances from the grid's redundancy
+(:mod:`softplot.marks.precision`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softplot.marks.detect import _local_prediction
+from softplot.marks.precision import variance_factor
+
+
+def _grid(ppm, deform_um, seed, pitch=5.0, n=11):
+    """Film positions (mm), the pixel positions of a smoothly deformed film, and per-cross
+    covariances (px^2) of 0.03-0.2 px, anisotropic and turned."""
+    rng = np.random.default_rng(seed)
+    g = (np.arange(n) - (n - 1) / 2) * pitch
+    film = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    span = float(np.ptp(g))
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    d = deform_um * 1e-3 * np.stack([
+        np.sin(2 * np.pi * film[:, 0] / (3.0 * span) + ph[0]) * np.cos(film[:, 1] / span + ph[1]),
+        np.cos(2 * np.pi * film[:, 1] / (2.5 * span) + ph[2]) * np.sin(film[:, 0] / span + ph[3]),
+    ], 1)
+    xy = (film + d) * ppm * np.array([1.0, -1.0]) + 3000.0
+    m = len(film)
+    s = rng.uniform(0.03, 0.2, (m, 2))
+    t = rng.uniform(0, np.pi, m)
+    R = np.stack([np.stack([np.cos(t), -np.sin(t)], -1), np.stack([np.sin(t), np.cos(t)], -1)],
+                 -2)
+    C = R @ (s[:, :, None] ** 2 * np.eye(2)) @ R.transpose(0, 2, 1)
+    return film, xy, C, rng
+
+
+def _residuals(film, xy, ppm):
+    """Residuals against the nominal similarity (the global model's part that a projective
+    fit would take out is a constant and a plane here: the local fits follow it)."""
+    return xy - (film * ppm * np.array([1.0, -1.0]) + 3000.0)
+
+
+@pytest.mark.parametrize("k2", [1.0, 2.25, 4.0])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_variance_factor_recovers_understated_covariances(k2, seed):
+    """Crosses whose real errors are k x what their covariances say (JPEG, scene edges:
+    errors the residuals of a fit cannot show): the grid's departures find k^2."""
+    ppm = 500 / 25.4
+    film, xy, C, rng = _grid(ppm, 20.0, seed)
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(k2 * C), rng.standard_normal((len(C), 2)))
+    f = variance_factor(film, _residuals(film, xy + e, ppm), C, _local_prediction, ppm)
+    if k2 == 1.0:
+        assert f <= 1.35, f
+    else:
+        assert f == pytest.approx(k2, rel=0.3), (f, k2)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_variance_factor_leaves_a_strong_deformation_at_high_resolution_alone(seed):
+    """At 2400 dpi a 100 um deformation, not the crosses' 0.005 px, dominates what the local
+    fit misses: honest covariances are not enlarged."""
+    ppm = 2400 / 25.4
+    film, xy, C, rng = _grid(ppm, 100.0, seed)
+    C = C * (0.005 / 0.1) ** 2
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.standard_normal((len(C), 2)))
+    f = variance_factor(film, _residuals(film, xy + e, ppm), C, _local_prediction, ppm)
+    assert f <= 1.35, f
