@@ -63,3 +63,58 @@ def test_variance_factor_leaves_a_strong_deformation_at_high_resolution_alone(se
     e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.standard_normal((len(C), 2)))
     f = variance_factor(film, _residuals(film, xy + e, ppm), C, _local_prediction, ppm)
     assert f <= 1.35, f
+
+
+#: small JPEG copies (the web's): (dpi, blur px, JPEG quality, RGB)
+JPEG_COPIES = [(423, 1.87, 75, True), (500, 1.2, 60, False), (600, 0.8, 70, True)]
+
+
+def _jpeg_copy(dpi, blur, quality, rgb, seed):
+    import cv2
+
+    from softplot.synthetic import ScanSpec, render_scan
+
+    spec = ScanSpec(dpi=dpi, blur_sigma_px=blur, noise_sigma=0.005, contrast=0.32, rgb=rgb,
+                    scene="none", rotation_deg=0.3)
+    img, truth = render_scan("rollei-6006", spec, seed)
+    bgr = img[..., ::-1] if img.ndim == 3 else img
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    return (out[..., ::-1].copy() if out.ndim == 3 else out), truth
+
+
+def _z_rms(det, truth):
+    tm = {m["name"]: m for m in truth["marks"]}
+    z2 = []
+    for i, name in enumerate(det.name):
+        t = tm[name]
+        if (det.status[i] != "measured" or t["state"] != "visible" or t["damaged"]
+                or t["arms"] != 2):
+            continue
+        e = det.xy[i] - (t["x"], t["y"])
+        z2.append(float(e @ np.linalg.solve(det.cov[i], e)) / 2)
+    assert len(z2) >= 100
+    return float(np.sqrt(np.mean(z2)))
+
+
+@pytest.mark.parametrize("case", range(len(JPEG_COPIES)))
+def test_jpeg_copies_report_honest_covariances(case, monkeypatch):
+    """JPEG's quantisation of the crosses' own edges moves them by more than the fit's
+    covariance says (the residuals cannot show the part that looks like a shift): with the
+    scan's variance factor the normalised errors have an RMS within 0.67-1.5; without it
+    (factor 1) the same renders give more than 1.5 on the first copy."""
+    from softplot.io import Scan
+    from softplot.marks import detect
+
+    dpi, blur, q, rgb = JPEG_COPIES[case]
+    img, truth = _jpeg_copy(dpi, blur, q, rgb, 20 + case)
+    det = detect(Scan.from_array(img, dpi=dpi), "rollei-6006")
+    z = _z_rms(det, truth)
+    assert 0.67 <= z <= 1.5, (z, det.variance_factor)
+    assert det.to_json()["variance_factor"] == pytest.approx(det.variance_factor, abs=1e-4)
+    if case == 0:
+        assert det.variance_factor > 1.3
+        D = __import__("importlib").import_module("softplot.marks.detect")
+        monkeypatch.setattr(D, "variance_factor", lambda *a, **k: 1.0)
+        det1 = detect(Scan.from_array(img, dpi=dpi), "rollei-6006")
+        assert _z_rms(det1, truth) > 1.5

@@ -64,6 +64,7 @@ from softplot.marks.geometry import estimate_geometry, width_candidates
 from softplot.marks.lattice import estimate_dpi, fit_lattice, turn_template
 from softplot.marks.measure import AcceptRules, measure, measure_one_arm, median_blur
 from softplot.marks.overview import reseau_overview
+from softplot.marks.precision import variance_factor
 from softplot.marks.result import Detection
 from softplot.marks.template import MarkShape, cross_shape
 
@@ -344,6 +345,10 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
                sign, rules, radius_ov * f + 1.0, fitted, _held_blur(fine), fine, ppm)
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
+    # the errors the crosses' own fits cannot see, from their departures from each other
+    two = arms == 2
+    vfac = variance_factor(film[two], residual[two], cov[two], _local_prediction, ppm)
+    cov = cov * vfac
     rows_cols = res.row_col()
     sig_xy = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))
     n_meas = sum(s == "measured" for s in status)
@@ -402,6 +407,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         scene="joint" if tv else "opening",
         mark_geometry=geom.to_json(ppm),
         arms=arms,
+        variance_factor=vfac,
     )
 
 

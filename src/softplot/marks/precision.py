@@ -12,15 +12,13 @@ cross's departure ``d_i`` from the leave-one-out local fit through its neighbour
 (the outlier test's prediction) has, if the covariances ``C_j`` are right, the expected
 square ``E_i = E|e_i - pred_i(e)|^2`` of independent errors ``e_j ~ N(0, C_j)`` sent through
 the same fit (simulated: the fit is linear in its data). With Gaussian errors
-``|d_i|^2 / E_i`` is exponential with mean 1 and median ln 2, so
-
-    ``k^2 = median(|d_i|^2 / (E_i + b)) / ln 2``
-
-is the factor by which the covariances understate the errors (``b``: the square of what the
-local fit may miss of a real deformation, a floor in film micrometres: at high resolution it,
-not the measurement, dominates the departures). :func:`variance_factor` returns ``k^2``, at
-least 1: the covariances are only ever enlarged (a scan whose departures are smaller than
-its covariances predict keeps them).
+``|d_i|^2 / E_i`` is exponential with mean 1, so the mean of ``|d_i|^2 / (E_i + b)`` without
+its largest :data:`TRIM` share, over that share's expected value for an exponential, is
+``k^2``, the factor by which the covariances understate the errors (``b``: the square of
+what the local fit may miss of a real deformation, a floor in film micrometres: at high
+resolution it, not the measurement, dominates the departures). :func:`variance_factor`
+returns ``k^2``, at least 1: the covariances are only ever enlarged (a scan whose
+departures are smaller than its covariances predict keeps them).
 """
 
 from __future__ import annotations
@@ -37,6 +35,11 @@ DEFORMATION_FLOOR_UM = 0.3
 MIN_MARKS = 12
 #: simulated error draws for the expected departures
 DRAWS = 24
+#: the largest share of the departure ratios left out (crosses the outlier test kept but
+#: which are off for another reason than their precision)
+TRIM = 0.05
+#: the mean of an exponential variable of mean 1 below its (1 - TRIM) quantile
+_TRIMMED_MEAN = (1.0 - TRIM * (1.0 - np.log(TRIM))) / (1.0 - TRIM)
 #: the factor is at most this (a scan whose departures are larger still has outliers or a
 #: deformation the local fit does not follow, not imprecise crosses)
 MAX_FACTOR = 16.0
@@ -82,7 +85,9 @@ def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
         E += np.sum((e - predict(film, e, sigma=sig)) ** 2, 1)
     E /= DRAWS
     b = 2.0 * (DEFORMATION_FLOOR_UM * 1e-3 * px_per_mm) ** 2  # two axes
-    k2 = float(np.median(d2 / (E + b)) / np.log(2.0))
+    q = np.sort(d2 / (E + b))
+    keep = q[: max(int(np.floor((1.0 - TRIM) * len(q))), 1)]
+    k2 = float(np.mean(keep) / _TRIMMED_MEAN)
     if not np.isfinite(k2):
         return 1.0
     return float(np.clip(k2, 1.0, MAX_FACTOR))
