@@ -326,7 +326,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
             reason[i] = fine.reason[k] or "not found"
 
     sigma = np.sqrt(0.5 * (cov_w[:, 0, 0] + cov_w[:, 1, 1]))
-    floor_px = np.where(_outline(film), max(0.1, OUTLIER_FLOOR_MM * ppm),
+    floor_px = np.where(_outline(film, np.array(status) == "measured"),
+                        max(0.1, OUTLIER_FLOOR_MM * ppm),
                         max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
     Hm, residual, rms, dep = _reject_outliers(film, xy, status, reason, g.H, sigma,
                                               floor_px=floor_px)
@@ -763,11 +764,33 @@ def _spread(dev, edge):
     return spread
 
 
-def _outline(film):
-    """Marks on the outline of the certificate's grid (M,) bool."""
+def _outline(film, present=None):
+    """Marks on the outline of the certificate's grid (M,) bool; with ``present`` (M,) bool
+    (e.g. the measured marks) also those of which a lattice neighbour (one pitch along film x
+    or y) is not present: at the edge of a cropped or partial frame, or beside a gap, a
+    mark's neighbours' prediction extrapolates, as on the grid's outline."""
+    film = np.asarray(film, float)
     lo, hi = film.min(0), film.max(0)
     tol = 1e-6 * float(np.max(hi - lo) + 1.0)
-    return ((np.abs(film - lo) < tol) | (np.abs(film - hi) < tol)).any(1)
+    out = ((np.abs(film - lo) < tol) | (np.abs(film - hi) < tol)).any(1)
+    present = None if present is None else np.asarray(present, bool)
+    if present is None or not present.any() or len(film) < 2:
+        return out
+    have = cKDTree(film[present])
+    for k in (0, 1):
+        u = np.unique(np.round(film[:, k], 6))
+        d = np.diff(u)
+        if d.size == 0:
+            continue
+        step = np.zeros(2)
+        step[k] = float(d.min())
+        for sgn in (1.0, -1.0):
+            q = film + sgn * step
+            # only where the certificate has that neighbour (the grid's own outline is above)
+            inside = ((q >= lo - tol) & (q <= hi + tol)).all(1)
+            dist, _ = have.query(q)
+            out |= inside & (dist > 0.25 * step[k])
+    return out
 
 
 def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
@@ -811,7 +834,7 @@ def _rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0
             pm[inner_q] = _local_fit(film[q[inner_q]], film[meas], r[meas], 24, 3,
                                      n_sigma=sigma[meas])
         pred[meas.size + np.where(miss)[0]] = pm
-    edge = _outline(film)
+    edge = _outline(film, st == "measured")
     dev_m = np.hypot(*(r[meas] - pred[: meas.size]).T)
     spread = _spread(dev_m, edge[meas])  # constant within each group
     s_in = float(spread[~edge[meas]][0]) if (~edge[meas]).any() else float(spread[0])
@@ -861,10 +884,11 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     residuals (a local cubic inside the grid, a quadratic on its outline); a departure beyond
     ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust spread of the departures,
     separately for the marks on the grid's outline, which are extrapolated, and those inside
-    it; ``sigma``: the mark's own precision; ``floor`` (px, scalar or one per mark): on the
-    outline 0.1 px or :data:`OUTLIER_FLOOR_MM` on the film, inside
-    :data:`OUTLIER_FLOOR_INNER`, whichever is larger) is an
-    outlier (a mark locked onto something else, or pulled by a scratch along an arm); and
+    it (the outline of the marks measured when the test starts: the edge of a cropped or
+    partial frame counts, :func:`_outline`); ``sigma``: the mark's own precision; ``floor``
+    (px, scalar or one per mark): on the outline 0.1 px or :data:`OUTLIER_FLOOR_MM` on the
+    film, inside :data:`OUTLIER_FLOOR_INNER`, whichever is larger) is an outlier (a mark
+    locked onto something else, or pulled by a scratch along an arm); and
     beyond ``OUTLIER_K`` times the departure expected from the mark's own sigma and the
     prediction's error (:func:`_departure_model`, fitted to the departures before any
     rejection), whichever is smaller, but never below the floor. The worst one is rejected
@@ -874,7 +898,7 @@ def _reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     """
     Hm = H0
     n_max = max(1, len(film) // 10)
-    edge = _outline(film)
+    edge = _outline(film, np.array([s == "measured" for s in status]))
     coef = None
     for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
