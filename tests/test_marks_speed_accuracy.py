@@ -141,7 +141,17 @@ def test_compiled_lsm_step_gather_and_correlation_match_numpy(seed, monkeypatch)
     gathered = L._gather(stack, origin, ref, c0, A, shape, 3.0, bg, wt, None, (0.0, 1.0))
     fit = L.lsm(stack, origin, c0, A, **kw)
     Tk = _template(shape, origin, c, A, s, stack.shape[1:])
+    # one step's state: the half-arms' shifts (the arm test) from it
+    p = np.zeros((len(c0), 12))
+    p[:, 0:2] = c0 - ref + 0.1
+    p[:, 2:6] = A.reshape(-1, 4)
+    p[:, 6] = 1.0
+    state = L._step(p.copy(), gathered, shape, np.ones(12, bool), robust=True, init=True)[2]
+    halves = L._half_arm_shifts(p, gathered, shape, state)
     monkeypatch.setattr(kernels, "AVAILABLE", False)
+    halves0 = L._half_arm_shifts(p, gathered, shape, state)
+    for a, b in zip(halves, halves0, strict=True):
+        assert np.allclose(a, b, rtol=1e-5, atol=1e-12) and np.isfinite(b).all()
     gathered0 = L._gather(stack, origin, ref, c0, A, shape, 3.0, bg, wt, None, (0.0, 1.0))
     fit0 = L.lsm(stack, origin, c0, A, **kw)
     T0 = _template(shape, origin, c, A, s, stack.shape[1:])

@@ -39,10 +39,16 @@ min) and CPU time of the process (all threads); and ``softplot detect`` over ``-
 1200 dpi scans in one process (a subprocess: interpreter start, imports and the compiled
 kernels' loading included) against one scan per process, per scan.
 
+Two versions (``--compare SRC``): the busy scans detected by this checkout's code and by
+the code under ``SRC`` in two worker processes side by side, alternating detection by
+detection (each warmed up on each scan first), CPU and wall time of load + detect: on a
+machine shared with other work both versions see the same load.
+
 Usage::
 
     .venv/bin/python tools/bench_detect.py [--runs 5] [--cases rollei-2400,rollei-1200,aerial-19k]
     .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8] [--threads 1]
+    .venv/bin/python tools/bench_detect.py --compare OTHER/src [--runs 8] [--threads 1]
 """
 
 from __future__ import annotations
@@ -252,6 +258,69 @@ def busy(runs: int, batch: int, n_threads: int | None = None) -> None:
     print(f"load average at end: {_load()}")
 
 
+def _worker(n_threads: int) -> None:
+    """``--worker``: detect the busy scans named on stdin, one per line; print CPU and wall
+    time of each (load + detect) on stdout. Warmed up on every scan first."""
+    from softplot.io import load_scan
+    from softplot.marks import detect, kernels
+    from softplot.runtime import set_threads, tune_allocator
+
+    tune_allocator()
+    kernels.load()
+    set_threads(n_threads)
+    print("ready", flush=True)
+    seen = set()
+    for line in sys.stdin:
+        path = line.strip()
+        if path not in seen:  # the first detection of a scan warms caches
+            detect(load_scan(path), "rollei-6006")
+            seen.add(path)
+        t, c = time.perf_counter(), time.process_time()
+        detect(load_scan(path), "rollei-6006")
+        print(time.process_time() - c, time.perf_counter() - t, flush=True)
+
+
+def compare(other: str, runs: int, n_threads: int) -> None:
+    """``--compare SRC``: this checkout's code and the code under ``SRC`` (another version's
+    ``src`` folder) in two processes side by side, alternating detection by detection on the
+    busy scans (default scene model): on a shared machine both see the same load."""
+    from softplot.synthetic import ScanSpec, write_scan
+
+    here = str(Path(__file__).resolve().parents[1] / "src")
+    with tempfile.TemporaryDirectory(prefix="bench_cmp_") as tmp:
+        d = Path(tmp)
+        scans = {dpi: write_scan(d, "rollei-6006", ScanSpec(dpi=dpi, rotation_deg=1.5,
+                                                             scene="busy"), seed=7,
+                                 stem=f"busy-{dpi}")[0] for dpi in (1200, 2400)}
+        procs = {}
+        for name, src in (("other", other), ("this", here)):
+            env = dict(os.environ, PYTHONPATH=src)
+            procs[name] = subprocess.Popen([sys.executable, __file__, "--worker",
+                                            str(n_threads)], env=env, text=True,
+                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        for p in procs.values():
+            assert p.stdout.readline().strip() == "ready"
+        print(f"load average at start: {_load()}; {n_threads} threads")
+        res = {(n, dpi): ([], []) for n in procs for dpi in scans}
+        for i in range(runs + 1):
+            for dpi, path in scans.items():
+                for n, p in procs.items():
+                    p.stdin.write(f"{path}\n")
+                    p.stdin.flush()
+                    c, t = map(float, p.stdout.readline().split())
+                    if i:
+                        res[(n, dpi)][0].append(c)
+                        res[(n, dpi)][1].append(t)
+        for p in procs.values():
+            p.stdin.close()
+            p.wait()
+        for (n, dpi), (c, t) in res.items():
+            print(f"busy {dpi} dpi, {n} ({other if n == 'other' else here}): CPU median "
+                  f"{statistics.median(c):.3f} s (min {min(c):.3f}), wall median "
+                  f"{statistics.median(t):.3f} s (min {min(t):.3f}), n={len(c)}")
+    print(f"load average at end: {_load()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -261,10 +330,20 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="--busy: threads of the detections timed in this process (default: "
                          "SOFTPLOT_THREADS or the cores, at most 2)")
+    ap.add_argument("--compare", metavar="SRC",
+                    help="the busy scans, this code against the code under SRC (another "
+                         "version's src folder), alternating in two processes")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         child(*a.child)
+        return
+    if a.worker:
+        _worker(a.worker)
+        return
+    if a.compare:
+        compare(a.compare, a.runs, a.threads or 1)
         return
     if a.busy:
         busy(a.runs, a.batch, a.threads)

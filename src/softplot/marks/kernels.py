@@ -39,7 +39,7 @@ import numpy as np
 from softplot.marks.template import _ZSAT, _Phi_phi
 
 __all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
-           "cross_template", "corr_sums", "load", "ready"]
+           "cross_template", "corr_sums", "half_arms", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -664,6 +664,55 @@ def advance(Ninv, g, wsum, wrr, nact, p):
     _advance(Ninv, g, wsum, float(nact), wrr, p, dc, sig, cov, s0sq)
     return dc, sig, cov, s0sq
 
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _half_arms(q, X, Y, S, Qs, valid, Tu, Tv, U, V, R, W, width, s0sq, d, var, ms):
+    n, npx = X.shape
+    for i in range(n):
+        den = np.zeros(4)
+        num = np.zeros(4)
+        rr = np.zeros(4)
+        ww = np.zeros(4)
+        for j in range(npx):
+            u = U[i, j]
+            v = V[i, j]
+            au, av = abs(u), abs(v)
+            if max(au, av) <= width:
+                continue  # the centre square: no half-arm
+            if au >= av:
+                k = 0 if u >= 0 else 2
+            else:
+                k = 1 if v >= 0 else 3
+            w = W[i, j] if valid[i, j] else _ZERO
+            b = q[i, 8] - (S[i, j] + q[i, 9] * X[i, j] + q[i, 10] * Y[i, j]
+                           + q[i, 11] * Qs[i, j])
+            jn = b * (Tv[i, j] if (k == 0 or k == 2) else Tu[i, j])
+            r = R[i, j]
+            den[k] += w * jn * jn
+            num[k] += w * jn * r
+            rr[k] += w * r * r
+            ww[k] += w
+        for k in range(4):
+            if den[k] > 0:
+                d[i, k] = num[k] / den[k]
+                var[i, k] = s0sq[i] / den[k]
+            else:
+                d[i, k] = 0.0
+                var[i, k] = np.inf
+            ms[i, k] = rr[k] / max(ww[k], 1e-9)
+
+
+def half_arms(p, data, last, width):
+    """``lsm._half_arm_shifts`` for crosses in one compiled pass: ``(d, var, ms)`` (N, 4)."""
+    X, Y, _, valid, S, _, Qs, _ = data
+    n = len(p)
+    d, var, ms = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
+    c = np.ascontiguousarray
+    _half_arms(c(p, np.float32), c(X), c(Y), c(S), c(Qs), c(valid), c(last["Tu"]),
+               c(last["Tv"]), c(last["u"]), c(last["v"]), c(last["r"]), c(last["w"]),
+               np.float32(width), np.maximum(last["s0sq"], 1e-30), d, var, ms)
+    return d, var, ms
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -692,6 +741,7 @@ def load() -> bool:
                                                                   width=1.0))
             *_, Nm, g, wrr, wsum = weigh(p, data, M, J, True)
             Ninv, _ = invert(Nm, g, np.ones(12, bool))
+            half_arms(p, data, dict(Tu=z, Tv=z, u=z, v=z, r=z, w=z, s0sq=np.ones(1)), 1.0)
             advance(Ninv, g, wsum, wrr, 12, p.copy())
             influence(np.eye(12)[None], J)
             corr_sums(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.int64), z > -1, z,

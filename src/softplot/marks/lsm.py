@@ -456,6 +456,8 @@ def _half_arm_shifts(p, data, shape, last):
     variance ``s0^2 / sum(w J^2)`` for independent pixels (inf for a half without weight)
     and the weighted mean square residual of the half.
     """
+    if shape.kind == "cross" and kernels.ready():  # compiled: the same sums
+        return kernels.half_arms(p, data, last, shape.width)
     X, Y, S = data[0], data[1], data[4]
     valid = data[3]
     # the geometry of each mark's last step (its update was below CONVERGED sigma)
