@@ -424,7 +424,7 @@ def dense_surface(model, maps, images, gsd: float, options: DsmOptions | None = 
         sZ = lam**2 / geo.base * geo.pixel_mm * geo.cn * sd
         good = np.isfinite(P).all(axis=1) & (lam > 0)
         Pz.append(P[good].astype(np.float32))
-        Sz.append(sZ[good].astype(np.float32))
+        Sz.append(sZ[good].astype(np.float16))  # a precision: 3 digits are plenty
         sig_med.append(sd[good][::17].copy())  # a copy: not a view keeping all of sd
         _trim()  # the strip's temporaries: no heap left to fragment under the kept points
     n_left = int(np.count_nonzero(L))
@@ -795,7 +795,7 @@ def _grid(P, sZ, gsd, min_points, chunk: int = 1 << 16, band_cells: int = 1 << 1
         for ch in chunks:
             idx, dx, dy, Z = cells(ch)
             res = np.abs(Z - (sol[idx, 0] + sol[idx, 1] * dx + sol[idx, 2] * dy))
-            keep[ch[3]] = res <= np.maximum(4.0 * ch[1][ch[2]], spread)
+            keep[ch[3]] = res <= np.maximum(4.0 * ch[1][ch[2]].astype(np.float32), spread)
     Zc = sol[:, 0]
     valid = np.isfinite(Zc) & use
     Zg = np.where(valid, Zc + np.float32(z_ref), np.nan).reshape(rows, cols).astype(np.float32)
