@@ -47,7 +47,12 @@ def main(argv=None) -> int:
                     help="only fill --cache with the renders, detect nothing")
     ap.add_argument("--every", type=int, default=20,
                     help="rewrite --table and --failures every this many renders")
+    ap.add_argument("--merge", type=Path, nargs="+", metavar="JSONL",
+                    help="detect nothing: the table of these --jsonl logs (runs split with "
+                    "--start/--n; a seed seen twice keeps its last line)")
     a = ap.parse_args(argv)
+    if a.merge:
+        return _merge(a)
 
     from softplot.synthetic.sweep import (
         aggregate,
@@ -117,6 +122,32 @@ def main(argv=None) -> int:
     for k, v in short.items():
         print(f"  {k}: misses {'; '.join(v)}")
     _write(a, agg, failures, len(seeds), seeds)
+    return 0
+
+
+def _merge(a) -> int:
+    from types import SimpleNamespace
+
+    from softplot.synthetic.sweep import Score, aggregate, misses, table
+
+    rows = {}
+    for p in a.merge:
+        for line in p.read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                d = json.loads(line)
+                rows[int(d["seed"])] = d
+    seeds = sorted(rows)
+    results = [(SimpleNamespace(conditions=rows[s]["conditions"]),
+                Score.from_dict(rows[s])) for s in seeds]
+    agg = aggregate(results)
+    md = table(agg)
+    head = f"{len(seeds)} renders (seeds {seeds[0]}-{seeds[-1]})"
+    print(head + "\n\n" + md)
+    for k, v in agg.items():
+        if misses(v):
+            print(f"  {k}: misses {'; '.join(misses(v))}")
+    if a.table:
+        a.table.write_text(head + "\n\n" + md + "\n", encoding="utf-8")
     return 0
 
 

@@ -342,7 +342,22 @@ class Score:
                 "gross": self.gross, "claimed": self.claimed, "rms_px": rms, "crb_px": crb,
                 "z_rms": math.sqrt(np.mean(self.z2)) if self.z2 else float("nan"),
                 "seconds": self.seconds, "ambiguous_truth": self.ambiguous_truth,
-                "ids_ambiguous": self.ids_ambiguous, "ambiguous": self.ambiguous}
+                "ids_ambiguous": self.ids_ambiguous, "ambiguous": self.ambiguous,
+                # what the per-condition pools need (count, sum), for merging runs
+                "pool": {k: [len(v), float(np.sum(v))] for k, v in (
+                    ("err2", self.err2), ("crb2", self.crb2), ("err2_1", self.err2_1),
+                    ("crb2_1", self.crb2_1), ("z2", self.z2))}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Score":
+        """A score from :meth:`to_dict` (each pooled list as its count times its mean: the
+        per-condition figures of :func:`aggregate` are the same)."""
+        sc = cls(**{k: d[k] for k in ("result", "error", "visible", "measured", "missed",
+                                      "wrong", "gross", "claimed", "seconds",
+                                      "ambiguous_truth", "ids_ambiguous", "ambiguous")})
+        for k, (n, tot) in d["pool"].items():
+            setattr(sc, k, [tot / n] * n if n else [])
+        return sc
 
 
 def _bounds(case: Case, truth: dict, img_grey: np.ndarray | None, jpeg_rms: float) -> dict:
