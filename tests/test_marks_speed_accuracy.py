@@ -188,12 +188,23 @@ def test_compiled_correlation_sums_match_the_ffts(monkeypatch):
     w = rng.uniform(0.2, 1, (n, P)).astype(np.float32)
     h = rng.normal(0, 1e-3, (n, 2, P)).astype(np.float32)
     s0sq = rng.uniform(0.5, 2, n)
-    for blur in (0.3, 4.0):
-        a = L._correlated_cov(h, r, w, valid, X, Y, s0sq, np.full(n, blur))
-        monkeypatch.setattr(kernels, "AVAILABLE", False)
-        b = L._correlated_cov(h, r, w, valid, X, Y, s0sq, np.full(n, blur))
-        monkeypatch.setattr(kernels, "AVAILABLE", True)
-        assert np.abs(a - b).max() < 1e-5 * np.abs(b).max()
+    # and pixels anywhere in the box (a valid pixel at the corner of the valid ones, where
+    # the FFTs' grid also put the invalid pixels)
+    Xb, Yb = X.copy(), Y.copy()
+    for i in range(n):
+        k = rng.permutation(40 * 30)[:P]
+        Xb[i], Yb[i] = k % 40, k // 40
+        Xb[i, 0], Yb[i, 0] = Xb[i].min(), Yb[i].min()
+        Xb[i, 1:][(Xb[i, 1:] == Xb[i, 0]) & (Yb[i, 1:] == Yb[i, 0])] = 39.0
+    valid_b = valid.copy()
+    valid_b[:, 0] = True
+    for Xq, Yq, vq in ((X, Y, valid), (Xb, Yb, valid_b)):
+        for blur in (0.3, 4.0):
+            a = L._correlated_cov(h, r, w, vq, Xq, Yq, s0sq, np.full(n, blur))
+            monkeypatch.setattr(kernels, "AVAILABLE", False)
+            b = L._correlated_cov(h, r, w, vq, Xq, Yq, s0sq, np.full(n, blur))
+            monkeypatch.setattr(kernels, "AVAILABLE", True)
+            assert np.abs(a - b).max() < 1e-5 * np.abs(b).max()
 
 
 def test_measure_with_a_half_arm_per_mark_is_the_separate_calls():

@@ -527,13 +527,15 @@ def _correlated_cov(h, r, w, valid, X, Y, s0sq, blur):
     if kernels.ready():  # the few lags summed directly over the pixel pairs (compiled)
         return _cov_from_sums(kernels.corr_sums(ix, iy, valid, R, h, K), K, s0sq)
     shp = (fft.next_fast_len(gh + K), fft.next_fast_len(gw + K))
-    flat = iy * shp[1] + ix
+    # invalid pixels go to a spare cell past the grid (at the corner they would overwrite a
+    # valid pixel there)
+    flat = np.where(valid, iy * shp[1] + ix, shp[0] * shp[1])
     rows = np.arange(n)[:, None]
 
     def grid(vals):
-        g = np.zeros((n, shp[0] * shp[1]), np.float32)
+        g = np.zeros((n, shp[0] * shp[1] + 1), np.float32)
         g[rows, flat] = np.where(valid, vals, 0.0)
-        return g.reshape(n, *shp)
+        return g[:, :-1].reshape(n, *shp)
 
     grids = np.stack([grid(R), grid(vf), grid(h[:, 0]), grid(h[:, 1])], 1)  # (N, 4, h, w)
     # the chunks of marks run on the process's threads already: one FFT thread each
