@@ -267,7 +267,7 @@ def test_half_arm_check_removes_scene_pull(monkeypatch):
     """On a busy 2400 dpi render, a few crosses have one half-arm on a scene edge or a
     saturated road; LSM's half-arm consistency test drops that half and refits. It sees the
     pull where the cross's affine is held (a free affine turns the bar and hides it), i.e.
-    in the refits of :func:`softplot.marks.detect._shape_from_neighbours`: with the test the
+    in the refits of :func:`softplot.marks.measurement.shape_from_neighbours`: with the test the
     RMS is well below the RMS without it. (With the opening's scene, ``scene="opening"``:
     the joint scene estimate that ``detect`` takes here by default removes most of this pull
     itself.)"""
@@ -297,14 +297,14 @@ def test_shape_from_neighbours_removes_scene_pull(monkeypatch):
     import functools
     import importlib
 
-    det_mod = importlib.import_module("softplot.marks.detect")
+    det_mod = importlib.import_module("softplot.marks.measurement")
     label, cam, kw, seed = next(c for c in CASES if "blur_sigma_px=1.0-dpi=2400-noise_sigma=0.01"
                                 "-polarity=negative-scene=busy" in c[0])
     img, truth = render(cam, seed, **kw)
-    orig = det_mod._shape_from_neighbours
+    orig = det_mod.shape_from_neighbours
     rms = {}
     for z in (2.5, np.inf):
-        monkeypatch.setattr(det_mod, "_shape_from_neighbours", functools.partial(orig, z_max=z))
+        monkeypatch.setattr(det_mod, "shape_from_neighbours", functools.partial(orig, z_max=z))
         res = evaluate(detect(scan_of(img, truth), cam, scene="opening"), truth, cam)
         assert not res["wrong"] and not res["claimed"]
         rms[z] = res["rms"]

@@ -70,13 +70,15 @@ def test_refused_crosses_are_measured_again_from_three_half_arms(monkeypatch):
     a cross cut by the scan edge is never fitted."""
     import importlib
 
-    det_mod = importlib.import_module("softplot.marks.detect")
+    # every module of the reseau path that fits crosses
+    mods = [importlib.import_module(f"softplot.marks.{m}")
+            for m in ("marksize", "measurement", "validation")]
     img, truth = render(CAM, 13, dpi=1000, scene="none", noise_sigma=0.01,
                         crop_mm=(4.0, 0.0, 0.0, 0.0))
     tx = _truth_xy(truth)
     picked = ["R2C3", "R5C5", "R8C7"]
     at = np.array([tx[n] for n in picked])
-    orig = det_mod.measure
+    orig = mods[0].measure
 
     def refusing(sc, shape, c0, *a, **k):
         f = orig(sc, shape, c0, *a, **k)
@@ -88,7 +90,8 @@ def test_refused_crosses_are_measured_again_from_three_half_arms(monkeypatch):
                 f.reason[j] = "refused (test)"
         return f
 
-    monkeypatch.setattr(det_mod, "measure", refusing)
+    for mod in mods:
+        monkeypatch.setattr(mod, "measure", refusing)
     det = detect(scan_of(img, truth), CAM)
     res = evaluate(det, truth, CAM)
     assert not res["wrong"] and not res["claimed"]

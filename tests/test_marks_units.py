@@ -171,7 +171,8 @@ def test_affine_from_neighbour_positions_follows_a_strong_deformation(seed):
     film deformation, rotation and anisotropy: to 1e-4 inside the grid (a plane through the
     neighbours' exact affines misses it by several times more), with a larger variance factor
     at the outline."""
-    from softplot.marks.detect import _local_fit, _position_affine
+    from softplot.marks.neighbours import local_fit as _local_fit
+    from softplot.marks.neighbours import position_affine as _position_affine
     from softplot.synthetic.mapping import Deformation, Scanner, TruthMapping
 
     rng = np.random.default_rng(seed)
@@ -300,7 +301,8 @@ def _outlier_case(seed, sigma, extra=0.0):
 
 
 def test_departure_model_recovers_the_two_variance_terms():
-    from softplot.marks.detect import _departure_model, _expected_departure
+    from softplot.marks.validation import departure_model as _departure_model
+    from softplot.marks.validation import expected_departure as _expected_departure
 
     rng = np.random.default_rng(4)
     n = 4000
@@ -321,7 +323,7 @@ def test_outlier_test_holds_a_precise_cross_to_its_own_sigma(monkeypatch):
     precise cross pulled by 0.4 px (13 of its own sigmas) hides inside 3 spreads (0.5 px).
     The departure model (its own sigma and the prediction's error, which the neighbours'
     noise sets here: about 0.09 px) finds it; without it (OUTLIER_K huge) it is kept."""
-    D = importlib.import_module("softplot.marks.detect")  # the module, not the function
+    D = importlib.import_module("softplot.marks.validation")
 
     sigma = np.full(121, 0.12)
     precise = np.arange(13, 121, 5)
@@ -334,7 +336,7 @@ def test_outlier_test_holds_a_precise_cross_to_its_own_sigma(monkeypatch):
     def run():
         st, rs = ["measured"] * 121, [""] * 121
         floor = np.full(121, 0.05)
-        D._reject_outliers(film, xy.copy(), st, rs, H, sigma, floor_px=floor)
+        D.reject_outliers(film, xy.copy(), st, rs, H, sigma, floor_px=floor)
         return {i for i, s in enumerate(st) if s == "rejected"}
 
     assert run() == {bad}
@@ -346,10 +348,10 @@ def test_outlier_test_keeps_crosses_whose_departures_their_sigma_does_not_explai
     """Sharp crosses (sigma 0.001 px) under a deformation the local cubic does not follow
     (0.03 px): the departures are 30-100 sigmas, and none is an outlier (the shared term of the
     model carries them)."""
-    D = importlib.import_module("softplot.marks.detect")  # the module, not the function
+    D = importlib.import_module("softplot.marks.validation")
 
     film, xy, H, sigma = _outlier_case(3, np.full(121, 0.001), extra=0.03)
     st, rs = ["measured"] * 121, [""] * 121
-    _, _, _, coef = D._reject_outliers(film, xy, st, rs, H, sigma, floor_px=np.full(121, 0.02))
+    _, _, _, coef = D.reject_outliers(film, xy, st, rs, H, sigma, floor_px=np.full(121, 0.02))
     assert st.count("rejected") == 0
     assert np.all(np.sqrt(coef[:, 1]) > 0.03), coef  # the shared term, not the sigma

@@ -1,0 +1,218 @@
+"""Stage 6 of the reseau path: least-squares measurement of every cross inside the scan.
+
+:func:`measure_crosses` fits every cross whose extent lies inside the scan with least-squares
+template matching at full resolution (:func:`softplot.marks.measure.measure`, robust weights,
+against the scene under each cross as the grey opening estimates it; where the scene has sharp
+edges at the crosses the fits are refitted with the scene estimated jointly,
+:mod:`softplot.marks.scene`); the acceptance tests (contrast, correlation, shape, support of
+each arm) decide. Crosses whose fitted affine departs from their neighbours', or that failed,
+are refitted with the neighbours' affine and blur held (:func:`shape_from_neighbours`);
+crosses of another size (a larger centre cross) with their own (:func:`other_sizes`). The
+hand-over is :class:`Measurement`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softplot.marks import grid
+from softplot.marks.measure import AcceptRules, Fine, measure, median_blur
+from softplot.marks.neighbours import local_prediction, position_affine
+from softplot.marks.prediction import Prediction
+from softplot.marks.scene import JOINT_PASSES, busy_scene
+from softplot.marks.template import MarkShape
+
+__all__ = ["Measurement", "measure_crosses", "shape_from_neighbours", "other_sizes",
+           "held_blur"]
+
+
+@dataclass
+class Measurement:
+    """The crosses measured (hand-over of :func:`measure_crosses`); the validation stage
+    updates the per-cross arrays in place.
+
+    Attributes
+    ----------
+    shape : MarkShape
+        The cross fitted (mark frame px).
+    fitted : (M,) int
+        Indices of the crosses fitted (whole inside the scan), into the certificate's list.
+    fine : softplot.marks.measure.Fine
+        The fits of those M crosses (pixel system; ``A`` pixel -> mark-frame affines).
+    scene_tv : int
+        Joint-scene passes the fits took (0: the opening's scene).
+    xy : (N, 2) ndarray
+        Measured positions, full-resolution pixel system (NaN where not measured).
+    cov : (N, 2, 2) ndarray
+        Their covariance (px^2), correlated noise included.
+    cov_white : (N, 2, 2) ndarray
+        Their covariance for independent pixel noise (px^2): the outlier tests' precision.
+    score, cnr : (N,) ndarray
+        Correlation and contrast-to-noise of each fit (NaN where not fitted).
+    status : list of str
+        "measured" or "missing" per cross.
+    reason : list of str
+        Why a cross is not measured ("" where it is).
+    """
+
+    shape: MarkShape
+    fitted: np.ndarray
+    fine: Fine
+    scene_tv: int
+    xy: np.ndarray
+    cov: np.ndarray
+    cov_white: np.ndarray
+    score: np.ndarray
+    cnr: np.ndarray
+    status: list
+    reason: list
+
+    def sigma(self) -> np.ndarray:
+        """Each cross's precision for independent pixel noise (N,) px (NaN unmeasured)."""
+        cw = self.cov_white
+        return np.sqrt(0.5 * (cw[:, 0, 0] + cw[:, 1, 1]))
+
+
+def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
+                    on_img: np.ndarray, rules: AcceptRules | None,
+                    scene: str = "auto") -> Measurement:
+    """Fit every cross ``inside`` (N,) bool the scan (``on_img`` (N,) bool: centre on the
+    scan, for the others' reason) from the prediction ``pr``, with the scene model ``scene``
+    ("auto", "opening", "joint")."""
+    idx = np.where(inside)[0]
+    c0, A0, pred, ppm = pr.start, pr.A, pr.xy, pr.px_per_mm
+    s0, init_err, sign, max_shift = pr.s0, pr.init_err, pr.sign, pr.max_shift
+    # "auto": the joint scene where the first pass sees sharp scene edges at the crosses
+    fine = measure(scan, shape, c0[idx], A0[idx], s0, init_err, sign, rules, anchor=pred[idx],
+                   max_shift=max_shift,
+                   scene_tv=JOINT_PASSES if scene == "joint" else 0,
+                   auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=busy_scene)
+    tv = fine.scene_tv
+    shape_from_neighbours(scan, shape, pr.film[idx], c0[idx], pred[idx], fine, s0, init_err,
+                          sign, rules, max_shift, ppm, scene_tv=tv)
+    other_sizes(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
+                max_shift, scene_tv=tv)
+    N = len(pr.film)
+    xy = np.full((N, 2), np.nan)
+    cov = np.full((N, 2, 2), np.nan)
+    cov_w = np.full((N, 2, 2), np.nan)  # independent pixels: the outlier tests' precision
+    score = np.full(N, np.nan)
+    cnr = np.full(N, np.nan)
+    status = ["missing"] * N
+    reason = ["outside the scan" if not on_img[i] else "cut by the scan edge" for i in range(N)]
+    for k, i in enumerate(idx):
+        score[i] = fine.score[k]
+        cnr[i] = fine.cnr[k]
+        if fine.ok[k]:
+            xy[i] = fine.xy[k]
+            cov[i], cov_w[i] = fine.cov[k], fine.cov_white[k]
+            status[i] = "measured"
+            reason[i] = ""
+        else:
+            reason[i] = fine.reason[k] or "not found"
+    return Measurement(shape=shape, fitted=idx, fine=fine, scene_tv=tv, xy=xy, cov=cov,
+                       cov_white=cov_w, score=score, cnr=cnr, status=status, reason=reason)
+
+
+def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
+                           max_shift, ppm, z_max=2.5, scene_tv=0):
+    """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
+
+    A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
+    smoothly over the film, so its neighbours' positions predict it
+    (:func:`position_affine`). A scene edge along one half-arm pulls that half, and a free
+    affine absorbs the pull by turning that bar, which hides it from LSM's half-arm test.
+    So each element of the fitted affine is compared with the prediction: where one departs
+    from it by more than ``z_max`` times the robust spread of that element's departures over
+    all accepted marks (scaled by the prediction's own variance factor, larger at the grid's
+    outline), or where the mark was not accepted, the mark is fitted again with the predicted
+    affine held (the half-arm test then sees a pulled half and drops it), and the blur held
+    at the accepted marks' median (:func:`held_blur`); the refit replaces the first when
+    accepted. The spread adapts to the scan: where the prediction is the
+    weaker of the two (a 100 um deformation at 2400 dpi, low noise) only the marks the scene
+    really pulled stand out. Modifies ``fine`` in place.
+    """
+    cons, lev = position_affine(film, fine.xy, fine.ok, ppm)
+    have = np.isfinite(cons).all((1, 2))
+    fin = have & np.isfinite(fine.A).all((1, 2))
+    ref = fin & fine.ok
+    z = np.full(len(film), np.inf)
+    if ref.sum() >= 4:
+        dth = np.full((len(film), 4), np.nan)
+        dth[fin] = (fine.A[fin] - cons[fin]).reshape(-1, 4)
+        med = np.median(dth[ref], axis=0)
+        spread = 1.4826 * np.median(np.abs(dth[ref] - med), axis=0) + 1e-9
+        scale = spread * np.sqrt(lev / np.median(lev[ref]))[:, None]
+        z[fin] = np.max(np.abs(dth[fin] - med) / scale[fin], axis=1)
+    redo = np.where(have & (~fine.ok | (z > z_max)))[0]
+    if redo.size == 0:
+        return
+    start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
+    blur = held_blur(fine)
+    f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
+                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur)
+    # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
+    # the outlier test's leave-one-out prediction of its residual against a projective model
+    both = fine.ok[redo] & f2.ok
+    if both.any() and fine.ok.sum() >= 8:
+        m = np.where(fine.ok)[0]
+        Hm = grid.projective_fit(film[m], fine.xy[m])
+        near = local_prediction(film[m], fine.xy[m] - grid.apply_h(Hm, film[m]))
+        k = redo[both]
+        at = grid.apply_h(Hm, film[k]) + near[np.searchsorted(m, k)]
+        worse = np.hypot(*(f2.xy[both] - at).T) > np.hypot(*(fine.xy[k] - at).T)
+        f2.ok[np.where(both)[0][worse]] = False
+    for j, i in enumerate(redo):
+        if f2.ok[j]:
+            fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
+            fine.cov_white[i] = f2.cov_white[j]
+            fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
+                f2.score[j], f2.cnr[j], True, "")
+
+
+def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_shift,
+                 scene_tv=0, steps=(0.5, 2.5)):
+    """Measure crosses of another size than the others (a larger centre cross) with their own.
+
+    A cross refused as "wrong size" had its fitted affine scale the mark by ``k`` (the square
+    root of the determinants' ratio, fitted over predicted ``A0``); when ``k`` lies within
+    ``steps`` it is fitted again with the shape scaled by ``k`` (arms and lines) from its
+    fitted centre (else ``c0``) and the predicted affine, and an accepted fit replaces the
+    refusal. Modifies ``fine`` in place."""
+    if fine.A is None:
+        return
+    bad = np.array([not o and r == "wrong size" for o, r in zip(fine.ok, fine.reason,
+                                                                   strict=True)])
+    bad &= np.isfinite(fine.A).all((1, 2))
+    if not bad.any():
+        return
+    k = np.sqrt(np.abs(np.linalg.det(A0[bad])) / np.maximum(np.abs(np.linalg.det(fine.A[bad])),
+                                                              1e-12))
+    idx = np.where(bad)[0][(k >= steps[0]) & (k <= steps[1])]
+    k = k[(k >= steps[0]) & (k <= steps[1])]
+    # one fit per size class (scales rounded to a tenth)
+    for kk in np.unique(np.round(k, 1)):
+        grp = idx[np.round(k, 1) == kk]
+        big = MarkShape("cross", length=shape.length * kk, width=shape.width * kk)
+        start = np.where(np.isfinite(fine.xy[grp]).all(1, keepdims=True), fine.xy[grp], c0[grp])
+        f2 = measure(sc, big, start, A0[grp], s0 * max(kk, 1.0), init_err, sign, rules,
+                     anchor=pred[grp], max_shift=max_shift, scene_tv=scene_tv)
+        for j, i in enumerate(grp):
+            if f2.ok[j]:
+                fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]
+                fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
+                    f2.score[j], f2.cnr[j], True, "")
+                if fine.s is not None and f2.s is not None:
+                    fine.s[i] = f2.s[j]
+                for extra in ("cov_white", "arms"):
+                    a, b = getattr(fine, extra, None), getattr(f2, extra, None)
+                    if a is not None and b is not None:
+                        a[i] = b[j]
+
+
+def held_blur(fine) -> float | None:
+    """The blur (px) that refits and rescues hold (:func:`softplot.marks.measure.median_blur`
+    of the accepted marks)."""
+    return median_blur(fine.s, fine.ok) if fine.s is not None else None

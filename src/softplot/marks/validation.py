@@ -1,0 +1,347 @@
+"""Stage 7 of the reseau path: validation of the measured crosses against their neighbours.
+
+:func:`validate` refits the global projective model to the measured crosses; a cross whose
+residual departs from its neighbours' (a smooth film deformation moves neighbours alike) by
+more than a robust threshold, or by more than :data:`OUTLIER_K` times what its own sigma and
+the prediction's error lead one to expect (:func:`departure_model`), is "rejected"
+(:func:`reject_outliers`); rejected and refused crosses are fitted again from the neighbours'
+prediction, once without each half-arm (:func:`rescue`), and, failing that, as a lone bar
+(:func:`lone_arms`). The hand-over is :class:`Validation`; the orchestrator refuses a scan
+whose measured crosses lie farther than :data:`MAX_GRID_RMS_MM` (rms) off any projective grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+from softplot.marks import grid
+from softplot.marks.measure import AcceptRules, measure, measure_one_arm
+from softplot.marks.measurement import Measurement, held_blur
+from softplot.marks.neighbours import local_fit, local_prediction, outline, position_affine
+from softplot.marks.precision import variance_factor
+from softplot.marks.prediction import Prediction
+
+__all__ = ["Validation", "validate", "reject_outliers", "rescue", "lone_arms",
+           "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
+           "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
+           "LONE_ARM_ALONG_MIN_PX"]
+
+#: departures from the smooth deformation field below this (film mm) are never outliers on
+#: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
+#: deformation better than a few micrometres there
+OUTLIER_FLOOR_MM = 0.0025
+#: inside the grid the local cubic follows a 100 um deformation to a few tenths of a
+#: micrometre (no false rejection in the sweep down to 0.02 px): floor max(px, film mm)
+OUTLIER_FLOOR_INNER = (0.05, 0.0005)
+#: a reseau's measured crosses lie within this (film mm, rms) of a projective grid: three
+#: times the largest film deformation tested (100 um); more is not a reseau
+MAX_GRID_RMS_MM = 0.3
+#: a departure from the neighbours' prediction beyond this many times its expected size
+#: (:func:`departure_model`: from the mark's own sigma and the scan's prediction error) is
+#: an outlier (for a Gaussian departure a chance of exp(-2.75^2) = 5e-4 per mark)
+OUTLIER_K = 2.75
+#: the least standard deviation (px) of a lone bar's position along it (the prediction's)
+LONE_ARM_ALONG_MIN_PX = 0.5
+
+
+@dataclass
+class Validation:
+    """The measured crosses' model and residuals (hand-over of :func:`validate`).
+
+    Attributes
+    ----------
+    H : (3, 3) ndarray
+        The global projective model film mm -> full-resolution pixel, fitted to the measured
+        crosses.
+    residual : (N, 2) ndarray
+        Measured minus modelled position (px, pixel system; NaN where not measured).
+    rms : float
+        RMS of the residuals (px).
+    arms : (N,) int
+        Arms each cross was measured by: 2 (the cross), 1 (a lone bar), 0 (not measured).
+    departure : (2, 2) ndarray or None
+        The outlier test's :func:`departure_model` (None with fewer than 8 measured).
+    """
+
+    H: np.ndarray
+    residual: np.ndarray
+    rms: float
+    arms: np.ndarray
+    departure: np.ndarray | None
+
+
+def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
+    """Outlier test, rescue of the rejected and refused crosses, lone bars, the scan's
+    variance factor; updates ``m``'s per-cross arrays (positions, covariances, status,
+    reason) in place and scales ``m.cov`` by the variance factor."""
+    film, ppm, shape, fine = pr.film, pr.px_per_mm, m.shape, m.fine
+    xy, cov, cov_w, status, reason = m.xy, m.cov, m.cov_white, m.status, m.reason
+    N, idx = len(film), m.fitted
+    sigma = m.sigma()
+    floor_px = np.where(outline(film, np.array(status) == "measured"),
+                        max(0.1, OUTLIER_FLOOR_MM * ppm),
+                        max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
+    Hm, residual, rms, dep = reject_outliers(film, xy, status, reason, pr.H, sigma,
+                                             floor_px=floor_px)
+    A_fit = pr.A.copy()
+    A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, pr.A[idx])
+    fitted = np.zeros(N, bool)
+    fitted[idx] = True
+    if rescue(scan, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
+              pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm, scene_tv=m.scene_tv,
+              blur=held_blur(fine), fitted=fitted, departure=dep):
+        sigma = m.sigma()
+        Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
+                                               floor_px=floor_px)
+    arms = np.where(np.array(status) == "measured", 2, 0)
+    lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
+              pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm)
+    if (arms == 1).any():
+        residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
+    # the errors the crosses' own fits cannot see, from their departures from each other
+    two = arms == 2
+    vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm)
+    m.cov = cov * vfac
+    return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
+                      variance_factor=vfac)
+
+
+def outlier_threshold(spread, floor, sigma, expected=None):
+    """Largest departure (px) from the neighbours' prediction that is not an outlier:
+    ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s`` the departures' robust spread, ``sigma``
+    the mark's own precision); with ``expected`` (px, the departure's expected size for that
+    mark, :func:`departure_model`) at most ``max(floor, OUTLIER_K x expected)``: a precise
+    mark among imprecise ones is held to its own precision. The outlier test and the rescue
+    share it. Arrays of one value per mark (or scalars)."""
+    thr = np.maximum(np.maximum(3.0 * spread, floor), np.minimum(4.5 * spread, 4.0 * sigma))
+    if expected is None:
+        return thr
+    return np.minimum(thr, np.maximum(floor, OUTLIER_K * expected))
+
+
+def departure_model(dev, sigma, edge, iterations=6):
+    """Coefficients of the expected squared departure of a mark from its neighbours'
+    prediction, ``a sigma^2 + b``: ``a`` scales the mark's own variance (``sigma`` px from LSM,
+    which a busy scene makes optimistic), ``b`` (px^2) is what every mark shares (the
+    prediction's error: its neighbours' noise and the deformation the local polynomial does
+    not follow).
+
+    ``dev`` (M,) px departures, ``sigma`` (M,) px, ``edge`` (M,) bool (the grid's outline,
+    extrapolated: its own ``a, b`` when both it and the inside have 8 marks or more). Fitted
+    by non-negative least squares on ``dev^2``, weighted by the model's inverse square (the
+    variance of a squared Gaussian departure grows with its mean); departures beyond 3 times
+    the model's size are left out and the fit repeated. On a clean scan ``b`` dominates and
+    the test is the spread's; over a busy scene it holds a precise cross to its own sigma.
+    Returns (2, 2): rows outline, inside; columns ``a``, ``b``
+    (:func:`expected_departure` evaluates it).
+    """
+    d2 = np.asarray(dev, float) ** 2
+    s2 = np.nan_to_num(np.asarray(sigma, float), nan=1.0) ** 2
+    edge = np.asarray(edge, bool)
+    def fit(d2, s2):
+        a, b = 1.0, float(np.median(d2)) + 1e-12
+        for _ in range(iterations):
+            mod = a * s2 + b
+            keep = d2 <= 9.0 * mod
+            if keep.sum() < 2:
+                break
+            wt = 1.0 / np.maximum(mod[keep], 1e-24)
+            M = np.stack([s2[keep], np.ones(int(keep.sum()))], 1) * wt[:, None]
+            (a, b), _ = nnls(M, d2[keep] * wt)
+            b = max(float(b), 1e-12)
+        return a, b
+
+    if min(edge.sum(), (~edge).sum()) >= 8:
+        return np.array([fit(d2[edge], s2[edge]), fit(d2[~edge], s2[~edge])])
+    return np.tile(fit(d2, s2), (2, 1))  # too few in a group: one model for both
+
+
+def expected_departure(coef, sigma, edge):
+    """Expected departure (px) of marks with precision ``sigma`` (px) on the outline
+    (``edge`` True) or inside the grid, from :func:`departure_model`'s ``coef``."""
+    c = coef[np.where(np.asarray(edge, bool), 0, 1)]
+    sg = np.nan_to_num(np.asarray(sigma, float), nan=1.0)
+    return np.sqrt(c[..., 0] * sg**2 + c[..., 1])
+
+
+def robust_spread(dev, edge):
+    """Robust spread (1.4826 x median) of departures, separately for the grid's outline."""
+    spread = np.full(len(dev), 1.4826 * np.median(dev))
+    for grp in (edge, ~edge):
+        if grp.sum() >= 8:
+            spread[grp] = 1.4826 * np.median(dev[grp])
+    return spread
+
+
+def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
+    """Refit the global model to the measured marks; flag marks that disagree with it.
+
+    A smooth film deformation moves neighbouring crosses alike, so each residual against the
+    projective model is compared with a leave-one-out local quadratic fit to its neighbours'
+    residuals (a local cubic inside the grid, a quadratic on its outline); a departure beyond
+    ``max(floor, 3 s, min(4.5 s, 4 sigma))`` (``s``: the robust spread of the departures,
+    separately for the marks on the grid's outline, which are extrapolated, and those inside
+    it (the outline of the marks measured when the test starts: the edge of a cropped or
+    partial frame counts, :func:`~softplot.marks.neighbours.outline`); ``sigma``: the mark's
+    own precision; ``floor`` (px, scalar or one per mark): on the outline 0.1 px or
+    :data:`OUTLIER_FLOOR_MM` on the film, inside :data:`OUTLIER_FLOOR_INNER`, whichever is
+    larger) is an outlier (a mark locked onto something else, or pulled by a scratch along
+    an arm); and
+    beyond ``OUTLIER_K`` times the departure expected from the mark's own sigma and the
+    prediction's error (:func:`departure_model`, fitted to the departures before any
+    rejection), whichever is smaller, but never below the floor. The worst one is rejected
+    and the test repeated. Modifies ``status`` and ``reason`` in place. Returns the global
+    model (3, 3), the residuals (M, 2) px (NaN where not measured), their rms (px) and the
+    departure model (None with fewer than 8 measured marks).
+    """
+    Hm = H0
+    n_max = max(1, len(film) // 10)
+    edge = outline(film, np.array([s == "measured" for s in status]))
+    coef = None
+    for _ in range(n_max):
+        m = np.array([s == "measured" for s in status])
+        if m.sum() < 8:
+            break
+        Hm = grid.projective_fit(film[m], xy[m])
+        r = xy - grid.apply_h(Hm, film)
+        idx = np.where(m)[0]
+        pred = local_prediction(film[idx], r[idx], sigma=sigma[idx])
+        dev = np.hypot(*(r[idx] - pred).T)
+        # marks on the outline of the grid are predicted by extrapolation, which a strong
+        # deformation makes worse than the interpolation inside: each group its own spread
+        spread = robust_spread(dev, edge[idx])
+        sg = np.nan_to_num(sigma[idx], nan=1.0)
+        if coef is None:  # from all measured marks, before any is rejected
+            coef = departure_model(dev, sg, edge[idx])
+        fl = np.broadcast_to(floor_px, (len(film),))[idx]
+        thr = outlier_threshold(spread, fl, sg, expected_departure(coef, sg, edge[idx]))
+        bad = dev > thr
+        if not bad.any():
+            break
+        worst = idx[int(np.argmax(np.where(bad, dev / thr, -1.0)))]
+        status[worst] = "rejected"
+        reason[worst] = "outlier against the global model and its neighbours"
+    m = np.array([s == "measured" for s in status])
+    if m.sum() >= 4:
+        Hm = grid.projective_fit(film[m], xy[m])
+    r = xy - grid.apply_h(Hm, film)
+    residual = np.where(m[:, None], r, np.nan)
+    rms = float(np.sqrt(np.mean(np.sum(r[m] ** 2, 1)))) if m.any() else float("nan")
+    return Hm, residual, rms, coef
+
+
+def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
+            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None):
+    """Measure rejected and refused crosses again from three of their four half-arms.
+
+    A cross rejected by the outlier test was usually pulled by scene content along one
+    half-arm; one that the acceptance tests refused (``status`` "missing" among ``fitted``,
+    (M,) bool: the crosses that were fitted, i.e. not cut by the scan edge) often has one
+    half-arm on conflicting scene content. Each such
+    cross is fitted four times, each time without one half-arm, from
+    the position its neighbours predict and with the affine their positions predict held
+    (:func:`position_affine`; from ``A`` (M, 2, 2), free, where the neighbours do not
+    surround the cross): a free affine would let the remaining half of that bar set its
+    direction alone, and the cross's precision would drop several times. A fit that passes
+    the acceptance tests and lies within the outlier test's own threshold of that prediction
+    is a measurement of the cross by its clean parts (of several such, the best-correlated).
+    The blur is held at ``blur`` (px) when given; ``departure``, the outlier test's
+    :func:`departure_model`, tightens that threshold as it does the test's. A cross that
+    was not measured at all is predicted from the measured ones alone.
+    ``cov``: the reported and the independent-pixel covariances (N, 2, 2) each.
+    Modifies the arrays in place; returns whether any cross was recovered.
+    """
+    st = np.array(status)
+    rej = np.where((st == "rejected") | ((st == "missing") & np.asarray(fitted, bool)))[0]
+    meas = np.where(st == "measured")[0]
+    if rej.size == 0 or meas.size < 8:
+        return False
+    r = xy - grid.apply_h(Hm, film)
+    miss = ~np.isfinite(r[rej]).all(1)
+    ids = np.concatenate([meas, rej[~miss]])
+    p_ids = local_prediction(film[ids], r[ids], sigma=sigma[ids])
+    pred = np.zeros((meas.size + rej.size, 2))
+    pred[: meas.size] = p_ids[: meas.size]
+    pred[meas.size + np.where(~miss)[0]] = p_ids[meas.size :]
+    if miss.any():  # not measured at all: predicted from the measured crosses alone
+        q = rej[miss]
+        pm = local_fit(film[q], film[meas], r[meas], 16, 2, n_sigma=sigma[meas])
+        inner_q = ~outline(film)[q]
+        if inner_q.any():
+            pm[inner_q] = local_fit(film[q[inner_q]], film[meas], r[meas], 24, 3,
+                                     n_sigma=sigma[meas])
+        pred[meas.size + np.where(miss)[0]] = pm
+    edge = outline(film, st == "measured")
+    dev_m = np.hypot(*(r[meas] - pred[: meas.size]).T)
+    spread = robust_spread(dev_m, edge[meas])  # constant within each group
+    s_in = float(spread[~edge[meas]][0]) if (~edge[meas]).any() else float(spread[0])
+    s_out = float(spread[edge[meas]][0]) if edge[meas].any() else s_in
+    sp_rej = np.where(edge[rej], s_out, s_in)
+    target = grid.apply_h(Hm, film[rej]) + pred[meas.size :]
+    held, lev = position_affine(film, xy, st == "measured", ppm)
+    # held where the neighbours surround the cross; at the grid's corners the prediction is
+    # an extrapolation (variance factor tens of times the typical one): free there
+    hold = np.isfinite(held[rej]).all((1, 2)) & (lev[rej] <= 4.0 * np.nanmedian(lev[meas]))
+    best = np.full(rej.size, -np.inf)
+    for grp, fit_shape in ((np.where(hold)[0], False), (np.where(~hold)[0], True)):
+        if grp.size == 0:
+            continue
+        Ag = A[rej[grp]] if fit_shape else held[rej[grp]]
+
+        # the four fits are independent: one call measures them as four calls would, in
+        # common fits where the blur is held (measure's per-mark drop_part); merged in order
+        m = grp.size
+        f4 = measure(sc, shape, np.tile(target[grp], (4, 1)), np.tile(Ag, (4, 1, 1)), s0,
+                     init_err, sign, rules, anchor=np.tile(target[grp], (4, 1)),
+                     max_shift=max_shift, drop_part=np.repeat(np.arange(4), m),
+                     fit_shape=fit_shape, scene_tv=scene_tv, blur=blur)
+        for k in range(4):
+            f2 = f4.rows(slice(k * m, (k + 1) * m))
+            sg = f2.sigma
+            sp = sp_rej[grp]
+            fl = floor_px[rej[grp]]
+            exp = (None if departure is None
+                   else expected_departure(departure, sg, edge[rej[grp]]))
+            thr = outlier_threshold(sp, fl, sg, exp)
+            d = np.hypot(*(f2.xy - target[grp]).T)
+            good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
+            for j in np.where(good)[0]:
+                i = rej[grp[j]]
+                best[grp[j]] = f2.score[j]
+                xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
+                status[i], reason[i] = "measured", ""
+    return bool(np.isfinite(best).any())
+
+
+def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
+               max_shift, fitted, blur, fine, ppm):
+    """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
+    (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
+    their neighbours predict; along the bar the position is that prediction, with the
+    per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
+    predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
+    bar's contrast to noise must be at least half the measured crosses' median. ``cov``:
+    the reported and the independent-pixel covariances. Modifies the arrays in place
+    (``arms`` 1 where a bar was measured)."""
+    st = np.array(status)
+    q = np.where(((st == "missing") | (st == "rejected")) & np.asarray(fitted, bool))[0]
+    meas = np.where(st == "measured")[0]
+    if q.size == 0 or meas.size < 8 or shape.kind != "cross":
+        return
+    r = xy - grid.apply_h(Hm, film)
+    target = grid.apply_h(Hm, film[q]) + local_fit(film[q], film[meas], r[meas], 16, 2,
+                                                     n_sigma=sigma[meas])
+    loo = r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])
+    along = max(float(np.sqrt(np.mean(loo**2))), LONE_ARM_ALONG_MIN_PX)
+    held, _ = position_affine(film, xy, st == "measured", ppm)
+    Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
+    cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
+    f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
+                         along_sd=along, blur=blur, cnr_ref=cnr_ref)
+    for j, i in enumerate(q):
+        if f1.ok[j]:
+            xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
+            status[i], reason[i], arms[i] = "measured", "", 1
