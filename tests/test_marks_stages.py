@@ -20,7 +20,6 @@ LONG_ALLOWED = {
                        "by its owner",
     ("measure.py", "measure"): "the fits, the scene refits and the acceptance: to be split "
                                "by its owner",
-    ("fiducial.py", "detect_fiducials"): "to reuse the stages next",
 }
 
 

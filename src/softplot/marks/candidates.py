@@ -5,6 +5,9 @@ certificate at the overview's scale (:func:`softplot.marks.coarse.ncc_map`, in s
 rows) and keeps the peaks of each admissible sign (bright crosses +1, dark -1), with the most
 a lattice of that polarity can score. :func:`search_map` finds the best correlation near given
 points (the prediction stage's local search). The hand-over is :class:`Candidates`.
+
+Marks searched each in its own window (fiducials: :func:`window_candidates`) hand over
+:class:`WindowCandidates`.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from softplot.marks.common import polarity_signs
 from softplot.marks.overview import ReseauOverview
 from softplot.marks.template import MarkShape, cross_shape
 
-__all__ = ["Candidates", "reseau_candidates", "crosses_in", "search_map"]
+__all__ = ["Candidates", "reseau_candidates", "crosses_in", "search_map", "WindowCandidates",
+           "window_candidates"]
 
 
 @dataclass
@@ -134,3 +138,62 @@ def search_map(R, h, sign, xy_ov, radius):
     out[good, 0] = (jj[np.arange(n), b] + dx + h)[good]
     out[good, 1] = (ii[np.arange(n), a] + dy + h)[good]
     return out, val
+
+
+@dataclass
+class WindowCandidates:
+    """NCC candidates of marks searched each in its own window (hand-over of
+    :func:`window_candidates`): per mark ``i``, ``xy[i]`` (K_i, 2) full-resolution pixel
+    system, ``score[i]`` (K_i,) correlation, ``sign[i]`` (K_i,) int (+1 bright, -1 dark)."""
+
+    xy: list
+    score: list
+    sign: list
+
+    def of_sign(self, i: int, sign: int):
+        """Mark ``i``'s candidates of ``sign``: positions (K, 2) px and scores (K,)."""
+        m = self.sign[i] == sign
+        return self.xy[i][m], self.score[i][m]
+
+
+def window_candidates(ov: ReseauOverview, shapes, pred_full, radius_full: float,
+                      blur_px: float, signs, per: int = 6) -> WindowCandidates:
+    """NCC peaks of each mark inside its own window of the overview ``ov``.
+
+    ``shapes``: each mark's template at the overview's scale (overview px); ``pred_full``
+    (N, 2) the marks' expected positions and ``radius_full`` the windows' half size
+    (full-resolution pixel system); ``blur_px`` the expected blur sigma (full-resolution px);
+    ``signs`` the admissible signs; at most ``2 per`` peaks per window. Marks of one shape
+    (sizes rounded to 0.01 px) share the first one's template.
+    """
+    F, img = ov.factor, ov.image
+    xys, scores, sgns = [], [], []
+    cache = {}
+    for i, shp in enumerate(shapes):
+        key = (shp.kind, round(shp.length, 2), round(shp.width, 2), round(shp.radius, 2),
+               round(shp.dot_radius, 2))
+        c = coarse.full_to_ov(pred_full[i], F)
+        r = radius_full / F
+        x0 = int(max(np.floor(c[0] - r), 0))
+        y0 = int(max(np.floor(c[1] - r), 0))
+        x1 = int(min(np.ceil(c[0] + r) + 1, img.shape[1]))
+        y1 = int(min(np.ceil(c[1] + r) + 1, img.shape[0]))
+        cand = (np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
+        if x1 - x0 > 4 and y1 - y0 > 4:
+            win = img[y0:y1, x0:x1]
+            s_ov = float(np.hypot(blur_px / F, 0.5))
+            if key not in cache:
+                cache[key] = shp
+            R, h = coarse.ncc_map(win, cache[key], s_ov)
+            if R.size:
+                std = coarse.local_std(win, max(int(shp.extent), 2))
+                pk = coarse.find_peaks(R, h, min_dist=max(2.0, shp.extent), threshold=0.3,
+                                       max_peaks=2 * per, contrast=std, min_contrast=2e-3)
+                keep = np.isin(pk.sign, signs)
+                pk = pk.select(keep)
+                xy = coarse.ov_to_full(pk.xy + [x0, y0], F)
+                cand = (xy, pk.score, pk.sign)
+        xys.append(cand[0])
+        scores.append(cand[1])
+        sgns.append(cand[2])
+    return WindowCandidates(xy=xys, score=scores, sign=sgns)

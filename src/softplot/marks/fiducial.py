@@ -1,18 +1,24 @@
 """Fiducial marks of metric and aerial cameras (cross, dot, circle with dot).
 
-1. Predict each fiducial's pixel position from the certificate (film mm), the dpi and the
-   stated quarter-turn, with the film centre at the scan centre; its search window covers an
-   unknown offset (the scan's margin plus 10 mm) and a rotation of +-12 degrees.
-2. Overview of the scan (factor chosen so the thinnest stroke is about one overview pixel),
-   NCC with each fiducial's template inside its window only; the strongest peaks of each sign
-   are candidates.
-3. Pattern match: every pair of fiducials and pair of their candidates proposes a similarity
-   transform (scale within tolerance of the dpi, rotation within the range); the proposal that
-   explains most fiducials (then the highest summed score) wins; the polarity with the better
-   match is the scan's.
-4. LSM at full resolution for each fiducial with its analytic model, acceptance tests, then an
-   affine (up to 4 marks) or projective (5 or more) film -> pixel model; a mark whose residual
-   exceeds 0.3 mm is rejected.
+The fiducial path runs the stages of the reseau path where they apply:
+
+1. overview (:func:`softplot.marks.overview.make_overview`): factor chosen so the thinnest
+   stroke is about one overview pixel;
+2. candidates (:func:`softplot.marks.candidates.window_candidates`): each fiducial's position
+   predicted from the certificate (film mm), the dpi and the stated quarter-turn, with the film
+   centre at the scan centre; NCC with its template inside its window only (an unknown offset:
+   the scan's margin plus 10 mm, and a rotation of +-12 degrees); the strongest peaks of each
+   sign are candidates;
+3. identification by the pattern (:func:`match_pattern`, this module): every pair of
+   fiducials and pair of their candidates proposes a similarity transform (scale within
+   tolerance of the dpi, rotation within the range); the proposal that explains most
+   fiducials (then the highest summed score) wins; the polarity with the better match is the
+   scan's;
+4. measurement (:func:`softplot.marks.measurement.measure_marks`): LSM at full resolution for
+   each fiducial with its analytic model, acceptance tests;
+5. validation (:func:`softplot.marks.validation.validate_pattern`): an affine (up to 4 marks)
+   or projective (5 or more) film -> pixel model; a mark whose residual exceeds 0.3 mm is
+   rejected.
 """
 
 from __future__ import annotations
@@ -21,19 +27,15 @@ import time
 
 import numpy as np
 
-from softplot.marks import coarse, grid
-from softplot.marks.common import (
-    MM_PER_INCH,
-    DetectionError,
-    blank_check,
-    polarity_signs,
-    transform_json,
-)
-from softplot.marks.measure import measure
+from softplot.marks.candidates import WindowCandidates, window_candidates
+from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs, transform_json
+from softplot.marks.measurement import measure_marks
+from softplot.marks.overview import make_overview
 from softplot.marks.result import Detection
 from softplot.marks.template import fiducial_shape
+from softplot.marks.validation import validate_pattern
 
-__all__ = ["detect_fiducials", "layout_turns"]
+__all__ = ["detect_fiducials", "layout_turns", "match_pattern"]
 
 MAX_ROT_DEG = 12.0
 
@@ -48,45 +50,17 @@ def _film_to_pix_linear(k, theta):
     return k * _rot(theta) @ np.diag([1.0, -1.0])
 
 
-def _candidates(ov, F, fids, pred_full, radius_full, ppm, blur_px, signs, per=6):
-    """NCC peaks (full-res px) inside each fiducial's window: list of (xy, score, sign)."""
-    out = []
-    cache = {}
-    for i, fd in enumerate(fids):
-        shp = fiducial_shape(fd, ppm / F)
-        key = (shp.kind, round(shp.length, 2), round(shp.width, 2), round(shp.radius, 2),
-               round(shp.dot_radius, 2))
-        c = coarse.full_to_ov(pred_full[i], F)
-        r = radius_full / F
-        x0 = int(max(np.floor(c[0] - r), 0))
-        y0 = int(max(np.floor(c[1] - r), 0))
-        x1 = int(min(np.ceil(c[0] + r) + 1, ov.shape[1]))
-        y1 = int(min(np.ceil(c[1] + r) + 1, ov.shape[0]))
-        cand = (np.zeros((0, 2)), np.zeros(0), np.zeros(0, int))
-        if x1 - x0 > 4 and y1 - y0 > 4:
-            win = ov[y0:y1, x0:x1]
-            s_ov = float(np.hypot(blur_px / F, 0.5))
-            if key not in cache:
-                cache[key] = shp
-            R, h = coarse.ncc_map(win, cache[key], s_ov)
-            if R.size:
-                std = coarse.local_std(win, max(int(shp.extent), 2))
-                pk = coarse.find_peaks(R, h, min_dist=max(2.0, shp.extent), threshold=0.3,
-                                       max_peaks=2 * per, contrast=std, min_contrast=2e-3)
-                keep = np.isin(pk.sign, signs)
-                pk = pk.select(keep)
-                xy = coarse.ov_to_full(pk.xy + [x0, y0], F)
-                cand = (xy, pk.score, pk.sign)
-        out.append(cand)
-    return out
+def match_pattern(film, cands: WindowCandidates, k_nom, theta0, scale_tol, sign):
+    """Best similarity film -> pixel explaining most fiducials with candidates of ``sign``.
 
-
-def _match(film, cands, k_nom, theta0, scale_tol, sign):
-    """Best similarity film -> pixel explaining most fiducials with candidates of ``sign``."""
+    ``film`` (N, 2) mm; ``k_nom`` px/mm and ``theta0`` (radians, pixel system) the expected
+    scale and rotation. Returns ``((count, summed score), pick, Lm, t, k, theta)`` (``pick``
+    (N,) each mark's candidate among those of ``sign``, -1 for none; ``Lm`` (2, 2), ``t`` (2,)
+    film mm -> pixel) or None.
+    """
     n = len(film)
     best = None
-    c_xy = [c[0][c[2] == sign] for c in cands]
-    c_sc = [c[1][c[2] == sign] for c in cands]
+    c_xy, c_sc = zip(*(cands.of_sign(i, sign) for i in range(n)), strict=True)
     tol_px = None
     for i in range(n):
         for j in range(i + 1, n):
@@ -157,31 +131,9 @@ def layout_turns(fids) -> list[int]:
     return out
 
 
-def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) -> Detection:
-    """Fiducial-mark detection (see the module docstring); same result type as reseau."""
-    t0 = time.perf_counter()
-    timings: dict = {}
-    fids = list(cam.fiducials)
-    n = len(fids)
-    film = cam.fiducial_film()
-    warnings: list[str] = []
-    dpi_source = "given" if dpi is not None else ("file" if sc.dpi else "estimated")
-    dpi = dpi if dpi is not None else sc.dpi
-    scale_tol = 0.06
-    if dpi is None:
-        dpi = 25.4 * min(sc.width / cam.format_mm[0], sc.height / cam.format_mm[1])
-        scale_tol = 0.35
-    ppm = dpi / MM_PER_INCH
-    span = film.max(0) - film.min(0) if n > 1 else np.array([1.0, 1.0])
-    need = 0.5 * span * ppm
-    if sc.width < need[0] or sc.height < need[1]:
-        raise DetectionError(
-            f"{name}: scan of {sc.width}x{sc.height} px is much smaller than the {cam.name} "
-            f"fiducial pattern at {dpi:.0f} dpi (expected about {span[0] * ppm:.0f}x"
-            f"{span[1] * ppm:.0f} px or more)")
-    theta0 = np.radians(-float(rotate))
-    # overview factor: the finest feature (a stroke, a centre dot, a fifth of a dot) about
-    # 1.2 overview px, and an overview of at most ~12 Mpx
+def _fiducial_factor(fids, ppm: float, npix: int) -> int:
+    """Overview factor: the finest feature (a stroke, a centre dot, a fifth of a dot) about
+    1.2 overview px, and an overview of at most ~12 Mpx."""
     def feature(f):
         if f.shape == "dot":
             return f.size_mm / 5.0
@@ -190,118 +142,131 @@ def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) ->
         return f.line_width_mm
 
     F = max(1, int(min(feature(f) for f in fids) * ppm / 1.2))
-    while sc.width * sc.height / (F * F) > 12e6:
+    while npix / (F * F) > 12e6:
         F += 1
-    ov = coarse.overview(sc, F)
-    blank_check(ov, name)
-    timings["overview"] = time.perf_counter() - t0
+    return F
+
+
+def _check_size(sc, cam, film, dpi, name) -> None:
+    """A scan smaller than half the fiducial pattern is refused."""
+    ppm = dpi / MM_PER_INCH
+    span = film.max(0) - film.min(0) if len(film) > 1 else np.array([1.0, 1.0])
+    need = 0.5 * span * ppm
+    if sc.width < need[0] or sc.height < need[1]:
+        raise DetectionError(
+            f"{name}: scan of {sc.width}x{sc.height} px is much smaller than the {cam.name} "
+            f"fiducial pattern at {dpi:.0f} dpi (expected about {span[0] * ppm:.0f}x"
+            f"{span[1] * ppm:.0f} px or more)")
+
+
+def _candidates(sc, cam, ov, film, ppm, theta0, scale_tol, blur_px, signs):
+    """Stage 2: each fiducial's window around its position predicted with the film centre at
+    the scan centre, and the NCC peaks in it."""
+    F = ov.factor
     centre = np.array([(sc.width - 1) / 2.0, (sc.height - 1) / 2.0])
     Lm0 = _film_to_pix_linear(ppm, theta0)
     pred = film @ Lm0.T + centre
     margin = max(abs(sc.width - cam.format_mm[0] * ppm), abs(sc.height - cam.format_mm[1] * ppm))
     radius = (0.5 * margin + 10.0 * ppm
               + np.hypot(*film.T).max() * ppm * (np.sin(np.radians(MAX_ROT_DEG)) + scale_tol))
-    signs = polarity_signs(polarity)
-    cands = _candidates(ov, F, fids, pred, radius, ppm, blur_px, signs)
+    shapes = [fiducial_shape(fd, ppm / F) for fd in cam.fiducials]
+    return window_candidates(ov, shapes, pred, radius, blur_px, signs)
+
+
+def _pattern(cam, name, film, cands, ppm, theta0, scale_tol, signs, span):
+    """Stage 3: the best pattern match over the signs; too few fiducials in it is an error."""
+    n = len(film)
     best = None
     for sg in signs:
-        b = _match(film, cands, ppm, theta0, scale_tol, sg)
+        b = match_pattern(film, cands, ppm, theta0, scale_tol, sg)
         if b is not None and (best is None or b[0] > best[0][0]):
             best = (b, sg)
-    need_n = min(n, 2) if n <= 3 else 3
+    need_n = _need(n)
     if best is None or best[0][0][0] < need_n:
         found = 0 if best is None else best[0][0][0]
         raise DetectionError(
             f"{name}: fiducial marks not found: expected {n} {cam.name} fiducials "
-            f"({', '.join(sorted({f.shape for f in fids}))}) about {span[0]:.0f} mm apart, "
-            f"found {found} in the expected pattern")
-    (key, pick, Lm, t, k_fit, th), sign = best
+            f"({', '.join(sorted({f.shape for f in cam.fiducials}))}) about {span[0]:.0f} mm "
+            f"apart, found {found} in the expected pattern")
+    return best
+
+
+def _need(n: int) -> int:
+    """The fiducials a result needs of ``n``."""
+    return min(n, 2) if n <= 3 else 3
+
+
+def detect_fiducials(sc, cam, *, name, dpi, polarity, rotate, blur_px, rules) -> Detection:
+    """Fiducial-mark detection (see the module docstring); same result type as reseau."""
+    t0 = time.perf_counter()
+    timings: dict = {}
+    fids = list(cam.fiducials)
+    n = len(fids)
+    film = cam.fiducial_film()
+    dpi_source = "given" if dpi is not None else ("file" if sc.dpi else "estimated")
+    dpi = dpi if dpi is not None else sc.dpi
+    scale_tol = 0.06
+    if dpi is None:
+        dpi = 25.4 * min(sc.width / cam.format_mm[0], sc.height / cam.format_mm[1])
+        scale_tol = 0.35
+    ppm = dpi / MM_PER_INCH
+    span = film.max(0) - film.min(0) if n > 1 else np.array([1.0, 1.0])
+    _check_size(sc, cam, film, dpi, name)
+    theta0 = np.radians(-float(rotate))
+    F = _fiducial_factor(fids, ppm, sc.width * sc.height)
+    ov = make_overview(sc, F, ppm, name, compact=False)
+    timings["overview"] = time.perf_counter() - t0
+    signs = polarity_signs(polarity)
+    cands = _candidates(sc, cam, ov, film, ppm, theta0, scale_tol, blur_px, signs)
+    (key, pick, Lm, t, k_fit, th), sign = _pattern(cam, name, film, cands, ppm, theta0,
+                                                   scale_tol, signs, span)
     timings["pattern"] = time.perf_counter() - t0
     if dpi_source == "estimated":
         dpi = k_fit * MM_PER_INCH
         ppm = k_fit
-    pred = film @ Lm.T + t
-    c0 = pred.copy()
+    c0 = film @ Lm.T + t
     for m in range(n):
         if pick[m] >= 0:
-            xy_c, _, sg_c = cands[m]
-            c0[m] = xy_c[sg_c == sign][pick[m]]
+            c0[m] = cands.of_sign(m, sign)[0][pick[m]]
     A0 = np.linalg.inv(Lm @ np.diag([1.0 / ppm, -1.0 / ppm]))
-    xy = np.full((n, 2), np.nan)
-    cov = np.full((n, 2, 2), np.nan)
-    score = np.full(n, np.nan)
-    cnr = np.full(n, np.nan)
-    status = ["missing"] * n
-    reason = ["not found"] * n
-    s0 = float(blur_px)
-    init_err = max(1.0, 0.5 * F + 0.5)
-    for m, fd in enumerate(fids):
-        shp = fiducial_shape(fd, ppm)
-        ext = shp.extent + 2.0
-        if not (ext <= c0[m, 0] <= sc.width - 1 - ext and ext <= c0[m, 1] <= sc.height - 1 - ext):
-            reason[m] = "cut by the scan edge"
-            continue
-        fine = measure(sc, shp, c0[m : m + 1], A0[None], s0, init_err, sign, rules)
-        score[m] = fine.score[0]
-        cnr[m] = fine.cnr[0]
-        if fine.ok[0]:
-            xy[m] = fine.xy[0]
-            cov[m] = fine.cov[0]
-            status[m] = "measured"
-            reason[m] = ""
-        else:
-            reason[m] = fine.reason[0] or "not found"
-    ok = np.array([s == "measured" for s in status])
-    if ok.sum() < need_n:
+    meas = measure_marks(sc, [fiducial_shape(fd, ppm) for fd in fids], c0, A0,
+                         float(blur_px), max(1.0, 0.5 * F + 0.5), sign, rules)
+    n_ok = sum(s == "measured" for s in meas.status)
+    if n_ok < _need(n):
         raise DetectionError(
             f"{name}: fiducial marks not found: expected {n} {cam.name} fiducials "
-            f"({', '.join(sorted({f.shape for f in fids}))}), found {int(ok.sum())} that "
+            f"({', '.join(sorted({f.shape for f in fids}))}), found {n_ok} that "
             "look like them where the pattern puts them")
-    Hm = _fit(film[ok], xy[ok], Lm, t)
-    r = xy - grid.apply_h(Hm, film)
-    bad = ok & (np.hypot(*r.T) > 0.3 * ppm)
-    for m in np.where(bad)[0]:
-        status[m] = "rejected"
-        reason[m] = "outlier against the fiducial pattern"
-    ok &= ~bad
-    if bad.any():
-        Hm = _fit(film[ok], xy[ok], Lm, t)
-        r = xy - grid.apply_h(Hm, film)
-    kind = "projective" if ok.sum() >= 5 else ("affine" if ok.sum() >= 3 else "similarity")
-    rms = float(np.sqrt(np.mean(np.sum(r[ok] ** 2, 1)))) if ok.any() else float("nan")
-    residual = np.where(ok[:, None], r, np.nan)
-    if ok.sum() < n:
-        warnings.append(f"{n - int(ok.sum())} of {n} fiducials not measured")
+    v = validate_pattern(film, meas, Lm, t, ppm)
+    timings["total"] = time.perf_counter() - t0
+    return _fiducial_detection(sc, cam, name, dpi, dpi_source, sign, film, meas, v, timings)
+
+
+def _fiducial_detection(sc, cam, name, dpi, dpi_source, sign, film, m, v, timings):
+    """The :class:`Detection` of a fiducial scan from the stages' hand-overs."""
+    fids = list(cam.fiducials)
+    n = len(fids)
+    n_ok = sum(s == "measured" for s in m.status)
+    warnings: list[str] = []
+    if n_ok < n:
+        warnings.append(f"{n - n_ok} of {n} fiducials not measured")
     turns = layout_turns(fids)
     if turns:
         warnings.append(
             f"the fiducial layout looks the same turned by {' or '.join(map(str, turns))} "
             "degrees: the marks' names rest on --rotate")
-    tr = transform_json(Hm, rms, int(ok.sum()))
-    tr["kind"] = kind
+    tr = transform_json(v.H, v.rms, n_ok)
+    tr["kind"] = v.kind
+    cov = m.cov
     return Detection(
         image=name, camera=cam.name, width=sc.width, height=sc.height, dpi=float(dpi),
         polarity="negative" if sign > 0 else "positive",
         kind=["fiducial"] * n, name=[f.name for f in fids],
-        row=np.full(n, -1), col=np.full(n, -1), film=film, xy=xy,
+        row=np.full(n, -1), col=np.full(n, -1), film=film, xy=m.xy,
         sigma=np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])),
         sigma_xy=np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1)),
         cov=cov,
-        score=score, cnr=cnr, status=status, reason=reason, transform=tr, rms_px=rms,
-        residual=residual, warnings=warnings, dpi_source=dpi_source,
-        timings={**timings, "total": time.perf_counter() - t0},
+        score=m.score, cnr=m.cnr, status=m.status, reason=m.reason, transform=tr,
+        rms_px=v.rms, residual=v.residual, warnings=warnings, dpi_source=dpi_source,
+        timings=timings,
     )
-
-
-def _fit(src, dst, Lm, t):
-    """Projective (>= 5 points), affine (3-4), or the similarity from the pattern match."""
-    if len(src) >= 5:
-        return grid.projective_fit(src, dst)
-    if len(src) >= 3:
-        return grid.projective_fit(src, dst)  # affine for < 5 points
-    H = np.eye(3)
-    H[:2, :2] = Lm
-    H[:2, 2] = t
-    if len(src) >= 1:
-        H[:2, 2] += np.mean(dst - src @ Lm.T - t, axis=0)
-    return H

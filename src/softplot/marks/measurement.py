@@ -8,7 +8,8 @@ edges at the crosses the fits are refitted with the scene estimated jointly,
 each arm) decide. Crosses whose fitted affine departs from their neighbours', or that failed,
 are refitted with the neighbours' affine and blur held (:func:`shape_from_neighbours`);
 crosses of another size (a larger centre cross) with their own (:func:`other_sizes`). The
-hand-over is :class:`Measurement`.
+hand-over is :class:`Measurement`. Marks of different shapes (fiducials) are measured one by
+one (:func:`measure_marks`).
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from softplot.marks.prediction import Prediction
 from softplot.marks.scene import JOINT_PASSES, busy_scene
 from softplot.marks.template import MarkShape
 
-__all__ = ["Measurement", "measure_crosses", "shape_from_neighbours", "other_sizes",
-           "held_blur"]
+__all__ = ["Measurement", "measure_crosses", "measure_marks", "shape_from_neighbours",
+           "other_sizes", "held_blur"]
 
 
 @dataclass
@@ -35,12 +36,13 @@ class Measurement:
 
     Attributes
     ----------
-    shape : MarkShape
-        The cross fitted (mark frame px).
+    shape : MarkShape or None
+        The cross fitted (mark frame px); None for marks of several shapes.
     fitted : (M,) int
         Indices of the crosses fitted (whole inside the scan), into the certificate's list.
-    fine : softplot.marks.measure.Fine
-        The fits of those M crosses (pixel system; ``A`` pixel -> mark-frame affines).
+    fine : softplot.marks.measure.Fine or None
+        The fits of those M crosses (pixel system; ``A`` pixel -> mark-frame affines); None
+        for marks measured one by one.
     scene_tv : int
         Joint-scene passes the fits took (0: the opening's scene).
     xy : (N, 2) ndarray
@@ -57,9 +59,9 @@ class Measurement:
         Why a cross is not measured ("" where it is).
     """
 
-    shape: MarkShape
+    shape: MarkShape | None
     fitted: np.ndarray
-    fine: Fine
+    fine: Fine | None
     scene_tv: int
     xy: np.ndarray
     cov: np.ndarray
@@ -114,6 +116,45 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
             reason[i] = fine.reason[k] or "not found"
     return Measurement(shape=shape, fitted=idx, fine=fine, scene_tv=tv, xy=xy, cov=cov,
                        cov_white=cov_w, score=score, cnr=cnr, status=status, reason=reason)
+
+
+def measure_marks(scan, shapes, start: np.ndarray, A: np.ndarray, s0: float,
+                  init_err: float, sign: int, rules: AcceptRules | None) -> Measurement:
+    """Fit marks of different shapes one by one (fiducials): mark ``i`` of shape
+    ``shapes[i]`` (px) from ``start[i]`` (N, 2) pixel system with the pixel -> mark-frame
+    affine ``A`` (2, 2); a mark within its extent and 2 px of the scan's edge is cut (not
+    fitted)."""
+    N = len(shapes)
+    xy = np.full((N, 2), np.nan)
+    cov = np.full((N, 2, 2), np.nan)
+    cov_w = np.full((N, 2, 2), np.nan)
+    score = np.full(N, np.nan)
+    cnr = np.full(N, np.nan)
+    status = ["missing"] * N
+    reason = ["not found"] * N
+    fitted = []
+    for m, shp in enumerate(shapes):
+        ext = shp.extent + 2.0
+        if not (ext <= start[m, 0] <= scan.width - 1 - ext
+                and ext <= start[m, 1] <= scan.height - 1 - ext):
+            reason[m] = "cut by the scan edge"
+            continue
+        fitted.append(m)
+        fine = measure(scan, shp, start[m : m + 1], A[None], s0, init_err, sign, rules)
+        score[m] = fine.score[0]
+        cnr[m] = fine.cnr[0]
+        if fine.ok[0]:
+            xy[m] = fine.xy[0]
+            cov[m] = fine.cov[0]
+            if fine.cov_white is not None:
+                cov_w[m] = fine.cov_white[0]
+            status[m] = "measured"
+            reason[m] = ""
+        else:
+            reason[m] = fine.reason[0] or "not found"
+    return Measurement(shape=None, fitted=np.array(fitted, int), fine=None, scene_tv=0, xy=xy,
+                       cov=cov, cov_white=cov_w, score=score, cnr=cnr, status=status,
+                       reason=reason)
 
 
 def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,

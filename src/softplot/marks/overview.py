@@ -10,10 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from softplot.marks import coarse
 from softplot.marks.common import blank_check
 
-__all__ = ["ReseauOverview", "reseau_factor", "reseau_overview"]
+__all__ = ["ReseauOverview", "reseau_factor", "reseau_overview", "make_overview"]
 
 
 @dataclass
@@ -22,8 +24,9 @@ class ReseauOverview:
 
     Attributes
     ----------
-    image : softplot.marks.coarse.Overview
-        Grey in [0, 1] (indexed like an array), **overview pixel system**: overview pixel
+    image : softplot.marks.coarse.Overview or ndarray
+        Grey in [0, 1] (indexed like an array; float32 ndarray for the fiducial path),
+        **overview pixel system**: overview pixel
         ``(i, j)`` averages the ``factor x factor`` full-resolution pixels it covers;
         :func:`softplot.marks.coarse.ov_to_full` / ``full_to_ov`` convert positions
         (``x_full = factor * x_ov + (factor - 1) / 2``).
@@ -33,7 +36,7 @@ class ReseauOverview:
         Full-resolution pixels per film millimetre the factor was chosen for (dpi / 25.4).
     """
 
-    image: coarse.Overview
+    image: coarse.Overview | np.ndarray
     factor: int
     px_per_mm: float
 
@@ -51,7 +54,16 @@ def reseau_factor(line_px: float, npix: int) -> int:
 def reseau_overview(scan, line_px: float, px_per_mm: float, name: str) -> ReseauOverview:
     """The overview of ``scan`` for crosses whose lines are ``line_px`` (full-resolution px)
     wide; a blank scan is a :class:`~softplot.marks.common.DetectionError` naming ``name``."""
-    f = reseau_factor(line_px, scan.width * scan.height)
-    ov = coarse.overview_compact(scan, f)
+    return make_overview(scan, reseau_factor(line_px, scan.width * scan.height), px_per_mm,
+                         name)
+
+
+def make_overview(scan, factor: int, px_per_mm: float, name: str,
+                  compact: bool = True) -> ReseauOverview:
+    """The overview of ``scan`` reduced by ``factor``, stored compactly
+    (:func:`softplot.marks.coarse.overview_compact`) or as a float32 array
+    (:func:`softplot.marks.coarse.overview`); a blank scan is a
+    :class:`~softplot.marks.common.DetectionError` naming ``name``."""
+    ov = coarse.overview_compact(scan, factor) if compact else coarse.overview(scan, factor)
     blank_check(ov, name)
-    return ReseauOverview(image=ov, factor=f, px_per_mm=float(px_per_mm))
+    return ReseauOverview(image=ov, factor=factor, px_per_mm=float(px_per_mm))

@@ -6,8 +6,10 @@ more than a robust threshold, or by more than :data:`OUTLIER_K` times what its o
 the prediction's error lead one to expect (:func:`departure_model`), is "rejected"
 (:func:`reject_outliers`); rejected and refused crosses are fitted again from the neighbours'
 prediction, once without each half-arm (:func:`rescue`), and, failing that, as a lone bar
-(:func:`lone_arms`). The hand-over is :class:`Validation`; the orchestrator refuses a scan
-whose measured crosses lie farther than :data:`MAX_GRID_RMS_MM` (rms) off any projective grid.
+(:func:`lone_arms`). Fiducials, too few for a neighbourhood, are tested against the
+pattern's model (:func:`validate_pattern`). The hand-over is :class:`Validation`; the
+orchestrator refuses a scan whose measured crosses lie farther than :data:`MAX_GRID_RMS_MM`
+(rms) off any projective grid.
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ from softplot.marks.neighbours import local_fit, local_prediction, outline, posi
 from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
-__all__ = ["Validation", "validate", "reject_outliers", "rescue", "lone_arms",
+__all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
+           "rescue", "lone_arms",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX"]
+           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -60,17 +63,21 @@ class Validation:
         Measured minus modelled position (px, pixel system; NaN where not measured).
     rms : float
         RMS of the residuals (px).
-    arms : (N,) int
-        Arms each cross was measured by: 2 (the cross), 1 (a lone bar), 0 (not measured).
+    arms : (N,) int or None
+        Arms each cross was measured by: 2 (the cross), 1 (a lone bar), 0 (not measured);
+        None for fiducials.
     departure : (2, 2) ndarray or None
         The outlier test's :func:`departure_model` (None with fewer than 8 measured).
+    kind : str
+        The model's kind: "projective", or for a few fiducials "affine" / "similarity".
     """
 
     H: np.ndarray
     residual: np.ndarray
     rms: float
-    arms: np.ndarray
+    arms: np.ndarray | None
     departure: np.ndarray | None
+    kind: str = "projective"
 
 
 def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
@@ -107,6 +114,49 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     m.cov = cov * vfac
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vfac)
+
+
+#: film mm: a fiducial farther than this from the pattern's model is an outlier
+PATTERN_OUTLIER_MM = 0.3
+
+
+def validate_pattern(film: np.ndarray, m: Measurement, Lm: np.ndarray, t: np.ndarray,
+                     px_per_mm: float) -> Validation:
+    """The model of a pattern of a few marks (fiducials, ``film`` (N, 2) mm) fitted to the
+    measured ones (:func:`pattern_model`; ``Lm`` (2, 2), ``t`` (2,) the pattern match's
+    similarity film mm -> pixel); a mark whose residual exceeds :data:`PATTERN_OUTLIER_MM` is
+    "rejected" (``m`` updated in place) and the model refitted."""
+    status, reason, xy = m.status, m.reason, m.xy
+    ok = np.array([s == "measured" for s in status])
+    Hm = pattern_model(film[ok], xy[ok], Lm, t)
+    r = xy - grid.apply_h(Hm, film)
+    bad = ok & (np.hypot(*r.T) > PATTERN_OUTLIER_MM * px_per_mm)
+    for i in np.where(bad)[0]:
+        status[i] = "rejected"
+        reason[i] = "outlier against the fiducial pattern"
+    ok &= ~bad
+    if bad.any():
+        Hm = pattern_model(film[ok], xy[ok], Lm, t)
+        r = xy - grid.apply_h(Hm, film)
+    kind = "projective" if ok.sum() >= 5 else ("affine" if ok.sum() >= 3 else "similarity")
+    rms = float(np.sqrt(np.mean(np.sum(r[ok] ** 2, 1)))) if ok.any() else float("nan")
+    residual = np.where(ok[:, None], r, np.nan)
+    return Validation(H=Hm, residual=residual, rms=rms, arms=None, departure=None, kind=kind)
+
+
+def pattern_model(src, dst, Lm, t):
+    """Film mm -> pixel (3, 3) of a few marks: projective (>= 5 points), affine (3-4), or the
+    similarity ``Lm``, ``t`` from the pattern match shifted to the marks' mean (1-2)."""
+    if len(src) >= 5:
+        return grid.projective_fit(src, dst)
+    if len(src) >= 3:
+        return grid.projective_fit(src, dst)  # affine for < 5 points
+    H = np.eye(3)
+    H[:2, :2] = Lm
+    H[:2, 2] = t
+    if len(src) >= 1:
+        H[:2, 2] += np.mean(dst - src @ Lm.T - t, axis=0)
+    return H
 
 
 def outlier_threshold(spread, floor, sigma, expected=None):
