@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softplot.marks.detect import _local_prediction
+from softplot.marks.neighbours import local_prediction as _local_prediction
 from softplot.marks.precision import variance_factor
 
 
@@ -114,7 +114,7 @@ def test_jpeg_copies_report_honest_covariances(case, monkeypatch):
     assert det.to_json()["variance_factor"] == pytest.approx(det.variance_factor, abs=1e-4)
     if case == 0:
         assert det.variance_factor > 1.3
-        D = __import__("importlib").import_module("softplot.marks.detect")
+        D = __import__("importlib").import_module("softplot.marks.validation")
         monkeypatch.setattr(D, "variance_factor", lambda *a, **k: 1.0)
         det1 = detect(Scan.from_array(img, dpi=dpi), "rollei-6006")
         assert _z_rms(det1, truth) > 1.5

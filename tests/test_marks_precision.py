@@ -59,7 +59,7 @@ def test_independent_pixels_would_understate_grain(monkeypatch):
     the shortfall from the grid)."""
     f = lsm_mod.lsm
     monkeypatch.setattr(measure_mod, "lsm", lambda *a, **k: f(*a, **{**k, "correlated": False}))
-    monkeypatch.setattr(importlib.import_module("softplot.marks.detect"), "variance_factor",
+    monkeypatch.setattr(importlib.import_module("softplot.marks.validation"), "variance_factor",
                         lambda *a, **k: 1.0)
     z = _normalised(CASES["grain, blur 1.5 px"], 5)
     assert z > 2.0
