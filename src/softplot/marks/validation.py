@@ -70,6 +70,10 @@ class Validation:
         The outlier test's :func:`departure_model` (None with fewer than 8 measured).
     kind : str
         The model's kind: "projective", or for a few fiducials "affine" / "similarity".
+    variance_factor : float
+        The factor the crosses' covariances were scaled by (the scan's variance factor from
+        the grid's redundancy, :func:`softplot.marks.precision.variance_factor`; 1 for
+        fiducials).
     """
 
     H: np.ndarray
@@ -78,6 +82,7 @@ class Validation:
     arms: np.ndarray | None
     departure: np.ndarray | None
     kind: str = "projective"
+    variance_factor: float = 1.0
 
 
 def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
