@@ -123,7 +123,7 @@ def test_jpeg_copies_report_honest_covariances(case, monkeypatch):
 def test_outline_of_the_measured_crosses():
     """A cross beside a lattice position with no measured cross (a crop's edge, a gap) is
     on the outline: its neighbours' prediction extrapolates there."""
-    from softplot.marks.detect import _outline
+    from softplot.marks.neighbours import outline as _outline
 
     g = np.arange(5) * 5.0
     film = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
