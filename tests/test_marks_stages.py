@@ -228,10 +228,10 @@ def _truth_prediction(cam, txy, sign, s0=1.0, jitter=0.4, seed=0):
 
 
 def test_geometry_stage_measures_the_real_size():
-    """Crosses 1.3 x longer and 1.6 x wider than the certificate's: the stage finds them
+    """Crosses 1.3 x longer and 3 x wider than the certificate's: the stage finds them
     (profiled at the crosses the prediction confirms)."""
     sc, truth = _render(CAM, 4, dpi=DPI, noise_sigma=0.01, blur_sigma_px=1.0,
-                        mark_arm_scale=1.3, mark_width_scale=1.6)
+                        mark_arm_scale=1.3, mark_width_scale=3.0)
     cam = load_camera(CAM)
     guess = cross_shape(cam, PPM)
     ov = reseau_overview(sc, guess.width, PPM, "scan")
@@ -241,7 +241,9 @@ def test_geometry_stage_measures_the_real_size():
     assert geom.source == "scan" and geom.n >= 8
     assert abs(geom.arm_px / (1.3 * guess.length) - 1.0) < 0.03, geom
     geom = choose_width(sc, pr, geom, guess.width, None)
-    assert abs(geom.width_px / (1.6 * guess.width) - 1.0) < 0.1, geom
+    # the width is settled among the profiles' value and steps from the guess towards it
+    # (the least-squares fits decide): within a fifth of the truth, far from the guess
+    assert abs(geom.width_px / (3.0 * guess.width) - 1.0) < 0.2, geom
 
 
 @pytest.fixture(scope="module")
