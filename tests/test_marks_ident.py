@@ -98,3 +98,46 @@ def test_a_quarter_of_a_large_grid_is_named_from_its_one_edge_per_axis(seed, cro
     right, wrong, claimed, visible = _named(det, truth)
     assert (wrong, claimed) == (0, 0)
     assert right >= 0.98 * visible
+
+
+@pytest.fixture(scope="module")
+def dark_top():
+    """A Rollei scan cut through the bottom rows and the right columns whose top row lies
+    under a flat black region (a sky) reaching over the format's edge into the border: the
+    dark region's edge looks like the format's."""
+    from softplot.synthetic import ScanSpec, render_scan
+
+    spec = ScanSpec(dpi=600, crop_mm=(0, 0, 19, 19), rotation_deg=0.5, dark_rows=((0, 0),),
+                    dark_level=0.0)
+    return render_scan("rollei-6006", spec, 2)
+
+
+def test_a_dark_region_over_the_only_edge_row_is_given_but_said_ambiguous(dark_top):
+    """Which row is the top one the scan cannot tell: the crosses are returned (never a
+    refusal), ``ids_ambiguous`` is true in the result and its JSON, and one warning says
+    the rows and columns are ambiguous; nothing is claimed where no cross shows."""
+    from softplot.io import Scan
+    from softplot.marks import detect
+
+    img, truth = dark_top
+    det = detect(Scan.from_array(img, dpi=600), "rollei-6006")
+    assert det.measured.sum() >= 40
+    assert det.ids_ambiguous and det.to_json()["ids_ambiguous"] is True
+    said = [w for w in det.warnings if "ambiguous" in w]
+    assert len(said) == 1 and "\n" not in said[0] and "--grid-part" in said[0]
+
+
+def test_a_dark_row_inside_the_part_leaves_the_naming_certain():
+    """The same crop with a black region over a middle row instead: the top row and the
+    format's edge show, so the naming is certain and right."""
+    from softplot.io import Scan
+    from softplot.marks import detect
+    from softplot.synthetic import ScanSpec, render_scan
+
+    spec = ScanSpec(dpi=600, crop_mm=(0, 0, 19, 19), rotation_deg=0.5, dark_rows=((3, 3),),
+                    dark_level=0.0)
+    img, truth = render_scan("rollei-6006", spec, 2)
+    det = detect(Scan.from_array(img, dpi=600), "rollei-6006")
+    right, wrong, claimed, visible = _named(det, truth)
+    assert not det.ids_ambiguous and det.to_json()["ids_ambiguous"] is False
+    assert wrong == 0 and right >= visible - 1

@@ -53,6 +53,7 @@ def test_a_part_of_the_grid_is_named_right(crop):
     assert ok == visible
     assert sum(s == "missing" for s in det.status) == len(det) - visible
     assert any("not measured" in w for w in det.warnings)
+    assert not det.ids_ambiguous  # the format's edges name the part
 
 
 def test_a_strip_without_format_edges_says_its_naming_is_assumed():
@@ -61,3 +62,4 @@ def test_a_strip_without_format_edges_says_its_naming_is_assumed():
     ok, wrong, claimed, visible = _score(det, truth)
     assert wrong == 0 and claimed == 0 and ok == visible  # centred: the assumption holds
     assert any("could be several" in w for w in det.warnings)
+    assert det.ids_ambiguous and det.to_json()["ids_ambiguous"] is True

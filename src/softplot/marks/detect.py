@@ -195,7 +195,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous)
     timings["total"] = time.perf_counter() - t0
     return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
-                             warnings, timings)
+                             warnings, timings, ambiguous)
 
 
 def _check_size(sc, cam, dpi, name) -> None:
@@ -265,9 +265,10 @@ def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous) -> li
     if n_meas < N:
         warnings.append(f"{N - n_meas} of {N} crosses not measured")
     if ambiguous:
-        warnings.append("the scan shows a part of the grid that could be several (no edge of "
-                        "the format decides): rows and columns are named as if the scan were "
-                        "centred on the format")
+        warnings.append("rows and columns are ambiguous: the scan shows a part of the grid "
+                        "that could be several (no edge of the format decides, or a dark "
+                        "region hides it); named as the crosses fit best, nearest the "
+                        "format's centre: give --grid-part")
     if n_meas < 0.2 * n_in:
         # never thrown away for being few: returned, with the warning
         warnings.append(f"only {n_meas} of the {n_in} crosses inside the scan measured: "
@@ -276,7 +277,7 @@ def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous) -> li
 
 
 def _reseau_detection(sc, cam, name, dpi, dpi_source, sign, m: Measurement, v: Validation,
-                      mark_geometry, warnings, timings) -> Detection:
+                      mark_geometry, warnings, timings, ambiguous=False) -> Detection:
     """The :class:`Detection` of a reseau scan from the stages' hand-overs."""
     res = cam.reseau
     cov = m.cov
@@ -306,6 +307,7 @@ def _reseau_detection(sc, cam, name, dpi, dpi_source, sign, m: Measurement, v: V
         rms_px=v.rms,
         residual=v.residual,
         warnings=warnings,
+        ids_ambiguous=bool(ambiguous),
         dpi_source=dpi_source,
         timings=timings,
         scene="joint" if m.scene_tv else "opening",

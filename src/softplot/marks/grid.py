@@ -173,7 +173,8 @@ class GridFit:
         less its median, at least 0.05).
     ambiguous : bool
         Other row/col shifts fit the crosses and the format's edges as well (a strip through
-        the grid): the one nearest the scan's centre was taken.
+        the grid, or a dark region over the outer row that hides the format's edge too):
+        the best-fitting one (the one nearest the scan's centre among equals) was taken.
     """
 
     H: np.ndarray
@@ -393,6 +394,7 @@ def fit_grid(
     format_mm: tuple[float, float] | None = None,
     scale_tol: float | None = None,
     part: tuple[int, int, int, int] | None = None,
+    seeable=None,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
 
@@ -433,6 +435,11 @@ def fit_grid(
         The part of the grid the scan shows, when the user knows it (half-open ranges of
         columns and rows): the row/col numbering is chosen among the shifts that put the
         found crosses inside it.
+    seeable : callable, optional
+        ``seeable(xy, found)``: whether a cross at pixel positions (K, 2) would show in the
+        scan like the crosses ``found`` (n, 2) ((K,) bool; false over a flat dark region or
+        the border): crosses missed there do
+        not make another naming less likely (:attr:`GridFit.ambiguous`).
 
     Returns
     -------
@@ -445,7 +452,7 @@ def fit_grid(
     if lat is None:
         return None
     ident = identify(lat, score, reseau, image_size, margin_px, frame_evidence, format_mm,
-                     part)
+                     part, seeable)
     if ident is None:
         return None
     return projective_model(xy, score, reseau, ident, lat.px_per_mm, scale_tol)
@@ -615,7 +622,8 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
 
 
 def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
-             frame_evidence=None, format_mm=None, part=None) -> Identification | None:
+             frame_evidence=None, format_mm=None, part=None,
+             seeable=None) -> Identification | None:
     """Absolute rows and columns of the lattice's peaks: the index shift that fits the
     certificate's grid best.
 
@@ -623,8 +631,12 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     a shift is the peak score on the grid minus the score off it, minus a penalty for every
     cross of the grid that would lie inside the image without a peak (box sums over integral
     images give all shifts at once); the format's edges the scan shows decide between shifts
-    the crosses cannot tell apart. Arguments as :func:`fit_grid`'s; None when fewer than 3
-    peaks fall on the grid.
+    the crosses cannot tell apart. The naming is ambiguous when another shift scores as
+    well once the crosses it misses where no cross could be seen (``seeable(xy, found)``:
+    positions (K, 2) and the lattice's crosses (n, 2), pixel system -> (K,) bool, false
+    over a flat dark region or the border beyond the format)
+    are forgiven: a dark region over the outer row hides the format's edge with it.
+    Arguments as :func:`fit_grid`'s; None when fewer than 3 peaks fall on the grid.
     """
     cand, p0, Bc = lat.cand, lat.p0, lat.B
     ci, ri = lat.idx[cand, 0], lat.idx[cand, 1]
@@ -643,6 +655,11 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     inside = ((pos[:, 0] >= margin_px) & (pos[:, 0] <= W - 1 - margin_px)
               & (pos[:, 1] >= margin_px) & (pos[:, 1] <= Hh - 1 - margin_px)).reshape(nj, ni)
     U = (inside & ~seen_map).astype(float)
+    hidden = np.zeros_like(U)
+    if seeable is not None and U.any():
+        k = np.where(U.ravel() > 0)[0]
+        found = p0 + lat.idx[cand] @ Bc.T
+        hidden.ravel()[k] = ~np.asarray(seeable(pos[k], found), bool)
 
     def box_sums(Mp, r0=0, r1=rows, c0=0, c1=cols):
         c = np.zeros((nj + 1, ni + 1))
@@ -660,30 +677,28 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
         # as peaks off the grid do
         c0, c1, r0, r1 = part
         on = box_sums(S, r0, r1, c0, c1)
-    total_sc = sc.sum()
     # grid centre of each shift vs image centre (tie-breaker)
     a = np.arange(nj - rows + 1)[:, None] + j_lo + (rows - 1) / 2.0
     b = np.arange(ni - cols + 1)[None, :] + i_lo + (cols - 1) / 2.0
-    cxy_x = p0[0] + Bc[0, 0] * b + Bc[0, 1] * a
-    cxy_y = p0[1] + Bc[1, 0] * b + Bc[1, 1] * a
-    off = np.hypot(cxy_x - (W - 1) / 2, cxy_y - (Hh - 1) / 2)
-    total = on - (total_sc - on) - 0.5 * mean_sc * unseen - 1e-6 * off
+    off = np.hypot(p0[0] + Bc[0, 0] * b + Bc[0, 1] * a - (W - 1) / 2,
+                   p0[1] + Bc[1, 0] * b + Bc[1, 1] * a - (Hh - 1) / 2)
+    total = on - (sc.sum() - on) - 0.5 * mean_sc * unseen - 1e-6 * off
+    # the same, forgiving crosses missed where none could be seen
+    lenient = total + 0.5 * mean_sc * box_sums(hidden)
     if frame_evidence is not None and format_mm is not None:
         # shifts the crosses cannot tell apart (a part of the grid: a crop through it, a half
         # frame): the film's format edge, where the scan shows it, decides
-        near = np.argwhere(total >= total.max() - 0.5 * mean_sc)
+        near = np.argwhere((total >= total.max() - 0.5 * mean_sc)
+                           | (lenient >= lenient.max() - 0.5 * mean_sc))
         if len(near) > 1:
-            fx = np.array([-1, 1, 1, -1]) * 0.5 * format_mm[0] / reseau.pitch_x + (cols - 1) / 2
-            fy = (rows - 1) / 2 - np.array([1, 1, -1, -1]) * 0.5 * format_mm[1] / reseau.pitch_y
-            a = near[:, 0][:, None] + j_lo + fy[None, :]  # (K, 4) lattice row of each corner
-            b = near[:, 1][:, None] + i_lo + fx[None, :]
-            corners = np.stack([p0[0] + Bc[0, 0] * b + Bc[0, 1] * a,
-                                p0[1] + Bc[1, 0] * b + Bc[1, 1] * a], -1)
-            # steps of 0.05: what differs less is noise, and the scan's centre decides
-            ev = np.round(np.nan_to_num(np.asarray(frame_evidence(corners), float)) / 0.05)
+            ev = _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau, format_mm)
             total[near[:, 0], near[:, 1]] += 0.1 * mean_sc * ev
-    ambiguous = int(np.sum(total >= total.max() - 0.01 * mean_sc)) > 1
+            lenient[near[:, 0], near[:, 1]] += 0.1 * mean_sc * ev
     ja, ib = np.unravel_index(int(np.argmax(total)), total.shape)
+    # another shift as good (to a quarter of a cross's score) once hidden crosses are
+    # forgiven, or to a hundredth without
+    ambiguous = (int(np.sum(total >= total[ja, ib] - 0.01 * mean_sc)) > 1
+                 or int(np.sum(lenient >= lenient[ja, ib] - 0.25 * mean_sc)) > 1)
     dr = -(ja + j_lo)  # relative index of row 0 is ja + j_lo
     dc = -(ib + i_lo)
     col, row = ci + dc, ri + dr
@@ -691,6 +706,20 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     if ins.sum() < 3:
         return None
     return Identification(cand=cand[ins], node=row[ins] * cols + col[ins], ambiguous=ambiguous)
+
+
+def _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau: Reseau, format_mm):
+    """The format's edge evidence of the shifts ``near`` (K, 2) (relative indices of row 0,
+    col 0 less (j_lo, i_lo)), in steps of 0.05 (what differs less is noise, and the scan's
+    centre decides): (K,) float."""
+    rows, cols = reseau.rows, reseau.cols
+    fx = np.array([-1, 1, 1, -1]) * 0.5 * format_mm[0] / reseau.pitch_x + (cols - 1) / 2
+    fy = (rows - 1) / 2 - np.array([1, 1, -1, -1]) * 0.5 * format_mm[1] / reseau.pitch_y
+    a = near[:, 0][:, None] + j_lo + fy[None, :]  # (K, 4) lattice row of each corner
+    b = near[:, 1][:, None] + i_lo + fx[None, :]
+    corners = np.stack([p0[0] + Bc[0, 0] * b + Bc[0, 1] * a,
+                        p0[1] + Bc[1, 0] * b + Bc[1, 1] * a], -1)
+    return np.round(np.nan_to_num(np.asarray(frame_evidence(corners), float)) / 0.05)
 
 
 def projective_model(xy, score, reseau: Reseau, ident: Identification, px_per_mm: float,

@@ -22,7 +22,7 @@ from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
 
 __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
-           "FRAME_STEP", "SCALE_TOL"]
+           "seeable", "FRAME_STEP", "SCALE_TOL"]
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
 FRAME_STEP = 0.25
@@ -136,6 +136,41 @@ def frame_evidence(ov, f: int, ppm: float):
     return evidence
 
 
+def seeable(ov, f: int, ppm: float, pitch_mm: float):
+    """Where a cross would show in the scan, for :func:`grid.fit_grid`'s ``seeable``.
+
+    ``ov`` the overview (overview pixel system, reduction ``f``), ``ppm`` full-resolution
+    px per mm, ``pitch_mm`` the grid's smaller pitch. Returns a function of positions
+    (K, 2) and of the crosses a lattice found (n, 2) (full-resolution pixel system) giving
+    (K,) bool: the grey around the position (the
+    median of 7 x 7 samples over a fifth of a pitch) lies within the range of the grey
+    around the crosses found (their 10-90 %) widened by 0.3 of the overview's range (5-95
+    %). A flat dark region (a sky, a shadow) or the unexposed border is not: a cross there
+    does not show, however the grid is named.
+    """
+    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    Hh, W = g.shape
+    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
+    lo, hi = np.percentile(sub, [5, 95])
+    rng = max(float(hi - lo), 1e-6)
+    r = max(1.0, 0.1 * pitch_mm * ppm / f)
+    off = np.linspace(-r, r, 7)
+
+    def level(xy):
+        p = coarse.full_to_ov(np.asarray(xy, float).reshape(-1, 2), f)
+        x = np.clip(np.round(p[:, 0, None, None] + off[None, None, :]), 0, W - 1).astype(int)
+        y = np.clip(np.round(p[:, 1, None, None] + off[None, :, None]), 0, Hh - 1).astype(int)
+        return np.median(g[y, x].reshape(len(p), -1), axis=1)
+
+    def show(xy, found_xy):
+        ref = level(found_xy)
+        b_lo, b_hi = np.percentile(ref, [10, 90]) if len(ref) else (lo, hi)
+        b = level(xy)
+        return (b >= b_lo - 0.3 * rng) & (b <= b_hi + 0.3 * rng)
+
+    return show
+
+
 def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: str,
                 rotate_deg: float, part=None) -> Lattice | None:
     """The certificate's grid fitted to the candidates of each sign ``polarity`` admits; the
@@ -147,6 +182,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     """
     res = camera.reseau
     f, px_per_mm = ov.factor, ov.px_per_mm
+    show = seeable(ov.image, f, px_per_mm, min(res.pitch_x, res.pitch_y))
     # fit the polarity that can score most first; another one only if it could still win
     fits = {}
     for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
@@ -159,7 +195,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
                                  px_per_mm=px_per_mm, rotate_deg=rotate_deg,
                                  margin_px=0.5 * cands.template.length * f,
                                  frame_evidence=frame_evidence(ov.image, f, px_per_mm),
-                                 format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
+                                 format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
+                                 seeable=show)
     best = None
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
         g = fits.get(sg)
@@ -193,7 +230,8 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
                        (scan.width, scan.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
                        margin_px=0.5 * shape.length, max_rotation_deg=3.0,
                        frame_evidence=frame_evidence(ov.image, f, ppm),
-                       format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part)
+                       format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
+                       seeable=seeable(ov.image, f, ppm, min(res.pitch_x, res.pitch_y)))
     if g2 is not None and len(g2.node) >= len(g.node):
         return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f)
     return lat

@@ -69,6 +69,9 @@ class Detection:
     residual : (N, 2) float
         Measured minus model (px), NaN when not measured.
     warnings : list of str
+    ids_ambiguous : bool
+        The rows and columns could be others (a part of the grid that no edge of the format
+        names, or whose edge a dark region hides): one of the warnings says so.
     scene : str
         The scene model under the crosses: "opening" (the grey opening's estimate) or "joint"
         (also estimated jointly with each cross, :mod:`softplot.marks.scene_tv`); fiducials
@@ -120,6 +123,7 @@ class Detection:
     cov: np.ndarray | None = None
     arms: np.ndarray | None = None
     variance_factor: float = 1.0
+    ids_ambiguous: bool = False
 
     @property
     def measured(self) -> np.ndarray:
@@ -184,6 +188,7 @@ class Detection:
             "transform": self.transform,
             "rms_px": _num(self.rms_px, 5),
             "warnings": list(self.warnings),
+            "ids_ambiguous": bool(self.ids_ambiguous),
             "counts": {s: sum(x == s for x in self.status) for s in STATUSES},
             **({"mark_geometry": self.mark_geometry} if self.mark_geometry else {}),
         }
