@@ -141,3 +141,20 @@ def test_a_dark_row_inside_the_part_leaves_the_naming_certain():
     right, wrong, claimed, visible = _named(det, truth)
     assert not det.ids_ambiguous and det.to_json()["ids_ambiguous"] is False
     assert wrong == 0 and right >= visible - 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_centres_win_over_a_lattice_of_weaker_peaks_along_long_arms(seed):
+    """Long crosses give weaker correlation peaks along their arms, at the same offset from
+    every centre and about as many: that lattice agrees with as many nodes as the centres'
+    does; the centres, scoring higher, must be the lattice."""
+    xy, score, res, size, ppm, nodes = _small_grid_points(seed, "rollei-6006", rot_deg=4.8,
+                                                          dpi=1200)
+    n = len(nodes)
+    rng = np.random.default_rng(seed)
+    arm = xy[:n] + np.array([0.3 * res.pitch_x * ppm, 0.0]) + rng.normal(0, 0.7, (n, 2))
+    xy = np.vstack([xy, arm])
+    score = np.concatenate([score[:n] + 0.1, score[n:], rng.uniform(0.3, 0.5, n)])
+    lat = grid.find_lattice(xy, score, res, px_per_mm=ppm, rotate_deg=0.0, scale_tol=0.03)
+    assert lat is not None
+    assert np.sum(lat.cand < n) >= 0.9 * n  # the centres, not the arms' peaks

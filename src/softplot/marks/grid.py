@@ -563,7 +563,7 @@ def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
         p0, Bc = sol[0], sol[1:].T
     dev = np.hypot(*(xy[cand] - p0 - idx[cand] @ Bc.T).T)
     agree = dev < max(t_agree * float(np.sqrt(abs(np.linalg.det(Bc)))), 3.0)
-    return p0, Bc, idx, cand, (int(agree.sum()), float(np.median(dev[agree]))
+    return p0, Bc, idx, cand, (float(score[cand][agree].sum()), float(np.median(dev[agree]))
                                if agree.any() else np.inf)
 
 
@@ -611,11 +611,14 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
         res_px = np.hypot(sol[:, :, 0] @ Mi.T - xy[pts, 0], sol[:, :, 1] @ Mi.T - xy[pts, 1])
         per_node = np.minimum.reduceat(res_px, start, axis=1)
         agree = per_node < max(t_agree * pitch_px, 3.0)
+        # agreement weighted by the peaks' scores: the crosses' centres outscore the
+        # lattices of weaker peaks along long arms
+        w_agree = (res_px < max(t_agree * pitch_px, 3.0)) @ score[pts]
         n_agree = agree.sum(1)
         # the (lower) median of the agreeing nodes' residuals
         srt = np.sort(np.where(agree, per_node, np.inf), axis=1)
         med = srt[np.arange(len(sol)), np.maximum(n_agree - 1, 0) // 2]
-        best = int(np.lexsort((med, -n_agree))[0])
+        best = int(np.lexsort((med, -w_agree))[0])
         lim_px = max(t_fine * pitch_px, 4.0 * 1.4826 * float(med[best]))
         p0, Bc = sol[best][0], sol[best][1:].T
     return p0, Bc, lim_px
