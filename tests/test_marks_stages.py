@@ -27,7 +27,8 @@ from softplot.marks import coarse, grid
 from softplot.marks import fiducial as fid_mod
 from softplot.marks.candidates import reseau_candidates
 from softplot.marks.common import DetectionError
-from softplot.marks.lattice import fit_lattice, turn_template
+from softplot.marks.detect import detect
+from softplot.marks.lattice import HALF_STEPS, between_nodes, fit_lattice, turn_template
 from softplot.marks.marksize import choose_width, mark_geometry
 from softplot.marks.measurement import Measurement, measure_crosses, measure_marks
 from softplot.marks.overview import make_overview, reseau_factor, reseau_overview
@@ -194,6 +195,24 @@ def test_lattice_stage_names_rows_and_cols_and_maps_within_a_pixel(turned, coars
     assert (near == lat.grid.node).all()
     err = np.hypot(*(grid.apply_h(lat.grid.H, film) - txy).T)
     assert err[vis].max() < 1.0, err.max()
+
+
+def test_lattice_of_a_sparser_certificate_sees_the_crosses_between_its_nodes(turned,
+                                                                              coarse_stages):
+    """A 10 mm certificate (hasselblad-mk70, 5 x 5) on the Rollei's 5 mm reseau fits every
+    other cross perfectly; the crosses halfway between its nodes tell the wrong camera. The
+    right certificate sees none."""
+    sc, truth, cam = turned
+    ov, cands = coarse_stages
+    right = turn_template(fit_lattice(sc, ov, cands, cam, "auto", 0.0), sc, ov, cam, 0.0, 1.0)
+    assert between_nodes(right, cam.reseau) == []
+    sparse = load_camera("hasselblad-mk70")
+    wrong = fit_lattice(sc, ov, reseau_candidates(sc, ov, sparse, "auto", 1.0), sparse,
+                        "auto", 0.0)
+    assert wrong is not None and len(wrong.grid.node) >= 16  # the lattice itself fits
+    assert sorted(between_nodes(wrong, sparse.reseau)) == sorted(HALF_STEPS)
+    with pytest.raises(DetectionError, match="denser than hasselblad-mk70"):
+        detect(sc, sparse)
 
 
 def test_prediction_stage_within_a_pixel_of_truth(turned, coarse_stages):

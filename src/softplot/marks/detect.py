@@ -54,7 +54,13 @@ from softplot.marks.common import (
     transform_json,
 )
 from softplot.marks.fiducial import detect_fiducials
-from softplot.marks.lattice import Lattice, estimate_dpi, fit_lattice, turn_template
+from softplot.marks.lattice import (
+    Lattice,
+    between_nodes,
+    estimate_dpi,
+    fit_lattice,
+    turn_template,
+)
 from softplot.marks.marksize import choose_width, mark_geometry
 from softplot.marks.measure import AcceptRules
 from softplot.marks.measurement import Measurement, measure_crosses
@@ -232,6 +238,14 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
             "found no regular pattern of cross-like marks")
     # repeat the correlation with the template turned like the grid (when it is turned)
     lat = turn_template(lat, sc, ov, cam, rotate_pix, blur_px, part)
+    dense = between_nodes(lat, res)
+    if dense:
+        px = res.pitch_x / 2 if any(o[0] for o in dense) else res.pitch_x
+        py = res.pitch_y / 2 if any(o[1] for o in dense) else res.pitch_y
+        raise DetectionError(
+            f"{name}: the scan's reseau is denser than {cam.name}'s: crosses halfway between "
+            f"its {res.pitch_x}x{res.pitch_y} mm nodes (a pitch of about {px:g}x{py:g} mm); "
+            f"is {cam.name} the scan's camera?")
     n_assigned = len(lat.grid.node)
     if n_assigned < min(MIN_PART, res.count):
         raise DetectionError(

@@ -22,7 +22,7 @@ from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
 
 __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
-           "seeable", "FRAME_STEP", "SCALE_TOL"]
+           "seeable", "between_nodes", "FRAME_STEP", "SCALE_TOL", "HALF_STEPS"]
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
 FRAME_STEP = 0.25
@@ -277,3 +277,52 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
                              f"found (expected {res.rows}x{res.cols} crosses at "
                              f"{res.pitch_x} mm); give --dpi")
     return best_g.px_per_mm * MM_PER_INCH
+
+
+#: offsets (in pitches) of the places halfway between a lattice's nodes
+HALF_STEPS = ((0.5, 0.0), (0.0, 0.5), (0.5, 0.5))
+
+
+def between_nodes(lat: Lattice, reseau, ncc_ratio: float = 0.5) -> list[tuple[float, float]]:
+    """The offsets of :data:`HALF_STEPS` (in pitches, film x and y) where the scan shows
+    crosses halfway between the lattice's nodes: a reseau denser than the certificate's
+    (the wrong camera, whose pitch is a multiple of the scan's), never a reseau that matches.
+
+    Within the block of nodes the lattice assigned, the NCC map (``lat.ncc`` times the
+    polarity, best of 3 x 3 overview px) is read at every node assigned and at every
+    halfway place of one offset; the offset has crosses where at least 60 % of its places
+    (and 4 or more) correlate at least ``ncc_ratio`` times the median node.
+    """
+    g = lat.grid
+    film = reseau.film()
+    nodes = film[g.node]
+    if len(nodes) < 4:
+        return []
+    R = lat.ncc * lat.sign
+    h, w = R.shape
+
+    def read(xy_film):
+        p = coarse.full_to_ov(grid.apply_h(g.H, xy_film), lat.factor) - lat.half
+        x = np.round(p[:, 0]).astype(int)
+        y = np.round(p[:, 1]).astype(int)
+        ok = (x >= 1) & (x < w - 1) & (y >= 1) & (y < h - 1)
+        x, y = np.clip(x, 1, w - 2), np.clip(y, 1, h - 2)
+        best = np.max([R[y + dy, x + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+        return best[ok]
+
+    at_nodes = read(nodes)
+    if len(at_nodes) < 4:
+        return []
+    ref = float(np.median(at_nodes))
+    lo, hi = nodes.min(0), nodes.max(0)
+    pitch = np.array([reseau.pitch_x, reseau.pitch_y])
+    found = []
+    for off in HALF_STEPS:
+        p = nodes + np.asarray(off) * pitch
+        p = p[np.all((p >= lo - 1e-9) & (p <= hi + 1e-9), axis=1)]
+        if len(p) < 4:
+            continue
+        v = read(p)
+        if len(v) >= 4 and np.mean(v >= ncc_ratio * ref) >= 0.6:
+            found.append(off)
+    return found
