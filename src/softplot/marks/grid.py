@@ -764,7 +764,9 @@ def projective_model(xy, score, reseau: Reseau, ident: Identification, px_per_mm
     off = np.ones(len(xy), bool)
     off[cand] = False
     c50, c90 = np.percentile(score[off], [50, 90]) if off.sum() >= 10 else (0.2, 0.3)
-    J = h_jacobian(Hm, np.zeros((1, 2)))[0]
+    # scale and rotation where the crosses are (film mm): a part of the grid far from its
+    # centre (a strip of a large reseau) extrapolates the model's perspective to the centre
+    J = h_jacobian(Hm, reseau.film()[node].mean(0))[0]
     scale = float(np.sqrt(abs(np.linalg.det(J))))
     if scale_tol is not None and abs(scale / px_per_mm - 1.0) > scale_tol:
         return None  # the model through the assigned peaks is at another spacing: not the reseau

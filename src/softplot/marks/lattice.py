@@ -217,7 +217,7 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
     res = camera.reseau
     f, ppm = ov.factor, ov.px_per_mm
     shape = cross_shape(camera, ppm)
-    J = grid.h_jacobian(g.H, np.zeros((1, 2)))[0] / ppm
+    J = grid.h_jacobian(g.H, res.film()[g.node].mean(0))[0] / ppm  # where the crosses are
     A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
     shape_ov = cross_shape(camera, ppm / f)
     R2, h2 = coarse.ncc_map(ov.image, shape_ov, float(np.hypot(blur_px / f, 0.5)), A=A_ov,
