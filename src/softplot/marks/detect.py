@@ -189,7 +189,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     del ov, lat  # the overview and the NCC map are not needed any more: free them
     geom = mark_geometry(sc, pr, shape, min(res.pitch_x, res.pitch_y) * ppm)
     timings["profiles"] = time.perf_counter() - t0
-    geom = choose_width(sc, pr, geom, shape.width, rules)
+    geom = choose_width(sc, pr, geom, shape.width, rules, guess_arm=shape.length)
     shape = geom.shape()
     timings["geometry"] = time.perf_counter() - t0
     # crosses whose extent leaves the scan are cut: never fitted

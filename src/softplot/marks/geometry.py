@@ -63,8 +63,9 @@ class MarkGeometry:
 
     ``arm_px`` tip-to-tip length of a bar, ``width_px`` line width; ``*_spread_px`` their
     robust standard deviation over the crosses (NaN with fewer than 3 estimates); ``n`` the
-    bars measured; ``source`` "scan" (measured) or "certificate" (the starting guess kept:
-    too few crosses could be profiled).
+    bars measured; ``source`` "scan" (measured), "certificate" (the starting guess kept:
+    too few crosses could be profiled) or "fit" (the arm chosen by the least-squares fits of
+    the best crosses where the profiles left it in doubt).
     """
 
     arm_px: float
@@ -80,6 +81,12 @@ class MarkGeometry:
         """The same geometry with the line width the measuring stage settled on."""
         return MarkGeometry(self.arm_px, float(width_px), self.arm_spread_px,
                             self.width_spread_px, self.n, self.source, self.blur_px)
+
+    def with_arm(self, arm_px: float) -> "MarkGeometry":
+        """The same geometry with the arm length the measuring stage settled on (``source``
+        "fit": the least-squares fit of the best crosses chose it)."""
+        return MarkGeometry(float(arm_px), self.width_px, self.arm_spread_px,
+                            self.width_spread_px, self.n, "fit", self.blur_px)
 
     def shape(self) -> MarkShape:
         """The cross template of this geometry (mark frame px)."""
@@ -413,7 +420,7 @@ def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
     and the least-squares fit of the crosses decides (:func:`best_width`).
     """
     w0 = float(guess_px)
-    if geom.source != "scan":
+    if geom.source not in ("scan", "fit"):
         return [w0]
     w = float(geom.width_px)
     if not np.isfinite(w):

@@ -31,7 +31,8 @@ def geometry_text(det: Detection) -> str:
             return "?"
         return f"{x * 1000:.1f} um" + (f" +- {s * 1000:.1f}" if s is not None else "")
 
-    src = "measured on the scan" if g.get("source") == "scan" else "certificate (not measured)"
+    src = {"scan": "measured on the scan", "fit": "arm chosen by the fits"}.get(
+        g.get("source"), "certificate (not measured)")
     return (f"crosses: arm {v('arm_length_mm')}, line {v('line_width_mm')} "
             f"({src}, {g.get('n', 0)} bars)")
 
