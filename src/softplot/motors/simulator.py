@@ -313,6 +313,8 @@ class GrblSimulator:
         self._lock = threading.RLock()
         self._t_real0 = time.monotonic()
         self._out: deque[tuple[float, bytes]] = deque()
+        #: the last lines the controller emitted: (controller time it was due, text)
+        self.emitted: deque[tuple[float, str]] = deque(maxlen=256)
         self._in: deque[tuple[float, int]] = deque()
         self._tx_free = 0.0
         self._rx_last = 0.0
@@ -444,7 +446,9 @@ class GrblSimulator:
 
     def _emit(self, text: str, *, immediate: bool = False):
         delay = 0.0 if immediate else self.plan.slow * self.time_scale
-        self._out.append((self.now() + delay, (text + "\r\n").encode()))
+        due = self.now() + delay
+        self._out.append((due, (text + "\r\n").encode()))
+        self.emitted.append((due, text))
 
     @property
     def moving(self) -> bool:
