@@ -48,6 +48,10 @@ MAX_GRID_RMS_MM = 0.3
 OUTLIER_K = 2.75
 #: the least standard deviation (px) of a lone bar's position along it (the prediction's)
 LONE_ARM_ALONG_MIN_PX = 0.5
+#: lone bars are measured where at least this many crosses are: a plane through four
+#: neighbours and one to spare predicts their position (a 3 x 3 grid with three
+#: one-armed crosses has six)
+LONE_ARM_MIN_MEASURED = 5
 
 
 @dataclass
@@ -384,7 +388,7 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     st = np.array(status)
     q = np.where(((st == "missing") | (st == "rejected")) & np.asarray(fitted, bool))[0]
     meas = np.where(st == "measured")[0]
-    if q.size == 0 or meas.size < 8 or shape.kind != "cross":
+    if q.size == 0 or meas.size < LONE_ARM_MIN_MEASURED or shape.kind != "cross":
         return
     r = xy - grid.apply_h(Hm, film)
     target = grid.apply_h(Hm, film[q]) + local_fit(film[q], film[meas], r[meas], 16, 2,
