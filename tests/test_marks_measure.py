@@ -234,3 +234,58 @@ def test_lone_bars_of_a_small_grid_are_measured(case):
         else:
             assert np.hypot(*e) < 0.1, (t["name"], e)
     assert lone >= 1
+
+
+@pytest.mark.parametrize("off", [(0.0, -0.35), (0.3, 0.0)])
+def test_prediction_off_along_long_arms_is_recentred(off):
+    """A lattice of correlation peaks along long arms (2.2 x the certificate's) puts every
+    prediction a third of an arm off the centres: the bars' ends show it, the prediction is
+    moved to the centres, and every visible cross is measured near the truth (from the
+    prediction as given none is: the fits reach a few pixels)."""
+    from softplot.camera import load_camera
+    from softplot.io import Scan
+    from softplot.marks import grid
+    from softplot.marks.marksize import centred_geometry, choose_width, mark_geometry
+    from softplot.marks.measurement import measure_crosses
+    from softplot.marks.prediction import Prediction
+    from softplot.marks.template import cross_shape
+    from softplot.synthetic import ScanSpec, render_scan
+
+    dpi, ppm = 600.0, 600.0 / 25.4
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=dpi, mark_arm_scale=2.2,
+                                                     blur_sigma_px=1.2, noise_sigma=0.01), 7)
+    sc = Scan.from_array(img, dpi=dpi)
+    cam = load_camera("rollei-6006")
+    tm = {m["name"]: m for m in truth["marks"]}
+    names = cam.reseau.names()
+    txy = np.array([(tm[n]["x"], tm[n]["y"]) for n in names])
+    vis = np.array([tm[n]["state"] == "visible" and not tm[n]["damaged"] for n in names])
+    film = cam.reseau.film()
+    H = grid.projective_fit(film[vis], txy[vis])
+    J = grid.h_jacobian(H, film)
+    A = np.linalg.inv(J @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    guess = cross_shape(cam, ppm)
+    arm = 2.2 * guess.length
+    d = np.einsum("nij,j->ni", np.linalg.inv(A), np.asarray(off) * arm)  # mark frame -> px
+    pr = Prediction(film=film, xy=txy + d, start=txy + d, ncc=np.ones(len(film)),
+                    found=vis.copy(), A=A, J=J, H=H, sign=-1, px_per_mm=ppm, max_shift=3.0,
+                    init_err=1.0, s0=1.2)
+    assert np.hypot(*d.T).min() > 10.0
+    pitch = cam.reseau.pitch_x * ppm
+
+    def measured(geom, p):
+        geom = choose_width(sc, p, geom, guess.width, None, guess_arm=guess.length)
+        shape = geom.shape()
+        inside, on_img = p.inside(shape, sc.width, sc.height)
+        m = measure_crosses(sc, shape, p, inside, on_img, None, "opening")
+        ok = np.array([s == "measured" for s in m.status]) & vis
+        return ok, m
+
+    ok0, _ = measured(mark_geometry(sc, pr, guess, pitch), pr)
+    assert ok0.sum() < 0.5 * vis.sum()  # as given: the fits do not reach the centres
+    geom, pr2 = centred_geometry(sc, pr, guess, pitch)
+    assert np.abs(pr2.xy[vis] - txy[vis]).max() < 3.0
+    ok, m = measured(geom, pr2)
+    assert ok.sum() >= 0.995 * vis.sum(), (ok.sum(), vis.sum())
+    err = np.hypot(*(m.xy[ok] - txy[ok]).T)
+    assert err.max() < 0.15, err.max()

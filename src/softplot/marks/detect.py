@@ -61,7 +61,7 @@ from softplot.marks.lattice import (
     fit_lattice,
     turn_template,
 )
-from softplot.marks.marksize import choose_width, mark_geometry
+from softplot.marks.marksize import centred_geometry, choose_width
 from softplot.marks.measure import AcceptRules
 from softplot.marks.measurement import Measurement, measure_crosses
 from softplot.marks.overview import reseau_overview
@@ -187,7 +187,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     pr = predict(lat, res.film(), ppm, blur_px)
     ambiguous = lat.grid.ambiguous
     del ov, lat  # the overview and the NCC map are not needed any more: free them
-    geom = mark_geometry(sc, pr, shape, min(res.pitch_x, res.pitch_y) * ppm)
+    geom, pr = centred_geometry(sc, pr, shape, min(res.pitch_x, res.pitch_y) * ppm)
     timings["profiles"] = time.perf_counter() - t0
     geom = choose_width(sc, pr, geom, shape.width, rules, guess_arm=shape.length)
     shape = geom.shape()

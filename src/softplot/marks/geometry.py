@@ -76,17 +76,22 @@ class MarkGeometry:
     source: str
     #: the scan's blur sigma (px) from the bars' ends (with the profiles' interpolation)
     blur_px: float = float("nan")
+    #: the crosses' centres relative to the positions profiled (mark frame px, u and v):
+    #: the median midpoint of each bar's ends along it, (0, 0) where fewer than 3 bars of
+    #: an axis agree (a prediction off along the arms, e.g. a lattice of peaks on long arms)
+    offset_px: tuple = (0.0, 0.0)
 
     def with_width(self, width_px: float) -> "MarkGeometry":
         """The same geometry with the line width the measuring stage settled on."""
         return MarkGeometry(self.arm_px, float(width_px), self.arm_spread_px,
-                            self.width_spread_px, self.n, self.source, self.blur_px)
+                            self.width_spread_px, self.n, self.source, self.blur_px,
+                            self.offset_px)
 
     def with_arm(self, arm_px: float) -> "MarkGeometry":
         """The same geometry with the arm length the measuring stage settled on (``source``
         "fit": the least-squares fit of the best crosses chose it)."""
         return MarkGeometry(float(arm_px), self.width_px, self.arm_spread_px,
-                            self.width_spread_px, self.n, "fit", self.blur_px)
+                            self.width_spread_px, self.n, "fit", self.blur_px, self.offset_px)
 
     def shape(self) -> MarkShape:
         """The cross template of this geometry (mark frame px)."""
@@ -286,6 +291,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     centre = min(1.5 * w0 + 2.0, 0.6 * lo_half)
     bars = [_bar_profiles(grey_at, xy[i], A[i], u, v, w0, lo_half, sign, H, V)
             for i in order]
+    axis = [k for pair in bars if pair is not None for k, b in enumerate(pair) if b is not None]
     bars = [b for pair in bars if pair is not None for b in pair if b is not None]
     if bars:
         # the blurred line's half width at half maximum across the bars: the blur it
@@ -299,6 +305,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     if len(bars) >= 2:
         c = np.array([b[2] for b in bars])
         # bars without contrast (one-armed crosses, crosses under a dark sky) are left out
+        axis = [k for k, ck in zip(axis, c, strict=True) if ck >= 0.3 * np.median(c)]
         bars = [b for b, ck in zip(bars, c, strict=True) if ck >= 0.3 * np.median(c)]
     if len(bars) < 2:
         return MarkGeometry(L0, w0, float("nan"), float("nan"), len(bars), "certificate")
@@ -316,6 +323,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
            for b in bars]
     arms_a = np.array([f[1] - f[0] for f in one if f is not None])
     sa = _robust_std(arms_a)
+    offset = _centre_offset(one, axis, arm)
     if len(arms_a) < 3 or not abs(float(np.median(arms_a)) - arm) <= max(
             CONSISTENT[0] * arm, ARM_AGREE_PX):
         # the bars alone do not agree with their median profile: scene content along the
@@ -347,7 +355,22 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     if abs(arm / L0 - 1.0) <= ARM_AGREE:
         # within what a busy scene's profiles miss by: the guess stands
         arm = L0
-    return MarkGeometry(float(arm), w, sa, sw, len(bars), "scan", blur_px=float(sb))
+    return MarkGeometry(float(arm), w, sa, sw, len(bars), "scan", blur_px=float(sb),
+                        offset_px=offset)
+
+
+def _centre_offset(fits, axis, arm) -> tuple:
+    """The crosses' centre relative to the profiled positions (mark frame px, u and v): per
+    axis the median midpoint of that axis's bars' fitted ends (``fits`` of
+    :func:`_fit_along`, ``axis`` 0 for bars along u, 1 along v), where at least 3 bars agree
+    on it within a tenth of the arm ``arm`` (px); else 0."""
+    out = [0.0, 0.0]
+    for k in (0, 1):
+        mid = np.array([0.5 * (f[0] + f[1]) for f, a in zip(fits, axis, strict=True)
+                        if f is not None and a == k])
+        if len(mid) >= 3 and _robust_std(mid) <= CONSISTENT[0] * arm:
+            out[k] = float(np.median(mid))
+    return (out[0], out[1])
 
 
 def _median_profile(profiles: list) -> np.ndarray:

@@ -25,7 +25,7 @@ from softplot.marks.measure import AcceptRules, measure
 from softplot.marks.prediction import Prediction
 from softplot.marks.template import MarkShape
 
-__all__ = ["mark_geometry", "choose_width", "arm_candidates"]
+__all__ = ["mark_geometry", "centred_geometry", "choose_width", "arm_candidates"]
 
 #: arm lengths tried where the profiles leave the arm in doubt, times the profiles' (or the
 #: certificate's) arm: steps of sqrt(2), so the nearest is within the acceptance tests' size
@@ -65,6 +65,22 @@ def _trial_score(scan, pr: Prediction, trial, arm, width, rules) -> float:
                  pr.A[trial], pr.s0, pr.init_err, pr.sign, rules, anchor=pr.xy[trial],
                  max_shift=pr.max_shift)
     return float(np.mean(np.where(ft.ok, ft.score, 0.0)))
+
+
+def centred_geometry(scan, pr: Prediction, guess: MarkShape, pitch_px: float,
+                     rounds: int = 3) -> tuple[MarkGeometry, Prediction]:
+    """:func:`mark_geometry`, and the prediction ``pr`` moved to the crosses' centres where
+    their bars' ends show them off it by more than the fits reach (``pr.max_shift``; e.g. a
+    lattice of correlation peaks along long arms): profiled again from there, up to
+    ``rounds`` times (a profile reaches about half a pitch, so a far offset is found in
+    steps). Returns ``(geometry, prediction)``."""
+    geom = mark_geometry(scan, pr, guess, pitch_px)
+    for _ in range(rounds):
+        if np.hypot(*geom.offset_px) <= max(pr.max_shift, 1.0):
+            break
+        pr = pr.shifted(geom.offset_px)
+        geom = mark_geometry(scan, pr, guess, pitch_px)
+    return geom, pr
 
 
 def choose_width(scan, pr: Prediction, geom: MarkGeometry, guess_width: float,

@@ -10,7 +10,7 @@ crosses lie whole inside the scan (the others are cut and never fitted). The han
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -74,6 +74,12 @@ class Prediction:
     max_shift: float
     init_err: float
     s0: float
+
+    def shifted(self, offset) -> "Prediction":
+        """The same prediction with every cross (``xy`` and ``start``) moved by ``offset``
+        (mark frame px, u and v: each cross's own affine turns it into pixels)."""
+        d = np.einsum("nij,j->ni", np.linalg.inv(self.A), np.asarray(offset, float))
+        return replace(self, xy=self.xy + d, start=self.start + d)
 
     def inside(self, shape: MarkShape, width: int, height: int):
         """Which crosses of size ``shape`` (px) lie whole inside a scan of ``width`` x
