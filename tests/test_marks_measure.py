@@ -289,3 +289,52 @@ def test_prediction_off_along_long_arms_is_recentred(off):
     assert ok.sum() >= 0.995 * vis.sum(), (ok.sum(), vis.sum())
     err = np.hypot(*(m.xy[ok] - txy[ok]).T)
     assert err.max() < 0.15, err.max()
+
+
+@pytest.mark.parametrize("k", [0, 5])
+def test_a_cross_predicted_at_its_arms_tip_is_rescued(k):
+    """A cross at the grid's edge (no neighbours around it to hold its affine) predicted at
+    the tip of its arm (its lattice node a correlation peak there): its first fit runs off
+    (another scale, the wrong place) and is refused; the rescue
+    measures it from its neighbours' prediction with the model's affine, not with that
+    fit's (with it, every rescue fit was refused as the wrong size), and finds it near the
+    truth."""
+    from softplot.camera import load_camera
+    from softplot.io import Scan
+    from softplot.marks import grid
+    from softplot.marks.measurement import measure_crosses
+    from softplot.marks.prediction import Prediction
+    from softplot.marks.template import cross_shape
+    from softplot.marks.validation import validate
+    from softplot.synthetic import ScanSpec, render_scan
+
+    dpi, ppm = 600.0, 600.0 / 25.4
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=dpi, blur_sigma_px=1.0,
+                                                     mark_width_scale=3.0), 3)
+    sc = Scan.from_array(img, dpi=dpi)
+    cam = load_camera("rollei-6006")
+    tm = {m["name"]: m for m in truth["marks"]}
+    names = cam.reseau.names()
+    txy = np.array([(tm[n]["x"], tm[n]["y"]) for n in names])
+    vis = np.array([tm[n]["state"] == "visible" and not tm[n]["damaged"] for n in names])
+    assert vis[k]
+    film = cam.reseau.film()
+    H = grid.projective_fit(film[vis], txy[vis])
+    J = grid.h_jacobian(H, film)
+    A = np.linalg.inv(J @ np.diag([1.0 / ppm, -1.0 / ppm]))
+    shape = cross_shape(cam, ppm)
+    shape = type(shape)("cross", length=shape.length, width=3.0 * shape.width)
+    start = txy.copy()
+    start[k] += np.linalg.inv(A[k]) @ np.array([0.5 * shape.length, 0.0])  # the arm's tip
+    pr = Prediction(film=film, xy=start, start=start, ncc=np.ones(len(film)),
+                    found=vis.copy(), A=A, J=J, H=H, sign=-1, px_per_mm=ppm, max_shift=3.0,
+                    init_err=1.0, s0=1.0)
+    inside, on_img = pr.inside(shape, sc.width, sc.height)
+    m = measure_crosses(sc, shape, pr, inside, on_img, None, "opening")
+    assert m.status[k] != "measured"
+    # a runaway fit leaves any affine behind (1.4 x the scale seen on a web copy)
+    j = int(np.where(m.fitted == k)[0][0])
+    m.fine.A[j] = 1.4 * A[k]
+    validate(sc, pr, m, None)
+    assert m.status[k] == "measured", m.reason[k]
+    assert np.hypot(*(m.xy[k] - txy[k])) < 0.1

@@ -102,8 +102,10 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
                         max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
     Hm, residual, rms, dep = reject_outliers(film, xy, status, reason, pr.H, sigma,
                                              floor_px=floor_px)
+    # the affine of the accepted fits; a refused fit's ran wherever it went (a scale of 1.4
+    # refused every later fit of that cross as the wrong size): the model's there
     A_fit = pr.A.copy()
-    A_fit[idx] = np.where(np.isfinite(fine.A), fine.A, pr.A[idx])
+    A_fit[idx] = np.where(np.isfinite(fine.A) & fine.ok[:, None, None], fine.A, pr.A[idx])
     fitted = np.zeros(N, bool)
     fitted[idx] = True
     if rescue(scan, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
