@@ -21,8 +21,9 @@ from softplot.marks.common import polarity_signs
 from softplot.marks.overview import ReseauOverview
 from softplot.marks.template import MarkShape, cross_shape
 
-__all__ = ["Candidates", "reseau_candidates", "crosses_in", "search_map", "WindowCandidates",
-           "window_candidates"]
+__all__ = ["Candidates", "reseau_candidates", "crosses_in", "arm_evidence", "arm_scored",
+           "search_map",
+           "WindowCandidates", "window_candidates", "ARM_POOL", "ARM_TURNS"]
 
 
 @dataclass
@@ -79,11 +80,13 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
     # certificate's): the number of candidates kept and the polarity's bound follow it
     n_in = crosses_in(scan, res, px_per_mm)
     peaks, bound = {}, {}
+    keep = 3 * n_in + 100
     for sg in polarity_signs(polarity):
         pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                threshold=0.2,
-                               max_peaks=3 * n_in + 100, sign=sg, image=ov.image,
+                               max_peaks=ARM_POOL * keep, sign=sg, image=ov.image,
                                std_half=max(int(arm_half), 2), min_contrast=noise_floor)
+        pk = arm_scored(pk, ov.image, sg, arm_half, shape_ov.width, s_ov, n_in, keep)
         if len(pk) < 4:
             continue
         # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
@@ -91,6 +94,111 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
         peaks[sg] = pk
         bound[sg] = float(np.sort(pk.score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
     return Candidates(ncc=R, half=h, peaks=peaks, bound=bound, template=shape_ov)
+
+
+#: NCC peaks gathered per peak kept: the ones kept are those whose arms show best
+ARM_POOL = 4
+
+
+def arm_scored(pk, image, sign, arm_half, width, s, n_in, keep, turn_deg=0.0):
+    """The NCC peaks ``pk`` (overview pixel system) scored by their arms: each correlation
+    times its :func:`arm_evidence` over the ``n_in``-th best evidence (at most 1; the
+    crosses the scan can hold show theirs at least as clearly, scene corners, edges and
+    JPEG block corners, which correlate as well as faint crosses do, show none). The
+    ``keep`` best-scoring ones with any evidence, best first. ``turn_deg``: the arms' turn
+    expected (pixel-system degrees), as :func:`arm_evidence`'s."""
+    if len(pk) == 0:
+        return pk
+    ev = arm_evidence(image, pk.xy, sign, arm_half, width, s, turn_deg)
+    fin = np.sort(ev[np.isfinite(ev)])[::-1]
+    ref = max(float(fin[min(n_in, len(fin)) - 1]) if len(fin) else 0.0, 1e-6)
+    score = pk.score * np.clip(ev / ref, 0.0, 1.0)
+    order = np.argsort(-score, kind="stable")[:keep]
+    order = order[score[order] > 0]
+    return coarse.Peaks(pk.xy[order], score[order], pk.sign[order])
+#: rotations (degrees from the pixel axes) the arms of :func:`arm_evidence` are read at
+ARM_TURNS = np.arange(-20.0, 20.1, 5.0)
+
+
+def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
+                 turn_deg: float = 0.0) -> np.ndarray:
+    """How clearly a cross's arms show around each point (grey units, times ``sign``).
+
+    ``image`` the overview (overview pixel system), ``xy`` (K, 2) points in it, ``sign`` +1
+    for bright crosses, -1 for dark ones, ``arm_half`` the half-arm read (overview px),
+    ``width`` the line width and ``s`` the blur (overview px). Each of the four half-arms
+    (axes turned by ``turn_deg`` (pixel-system degrees) plus each of :data:`ARM_TURNS`)
+    gives the mean grey along it, from clear of
+    the centre to ``arm_half``, less the mean grey of the nearer of its two flanks (a line
+    width and the blur away on either side); a point's evidence is the best over the turns
+    of its third-best half-arm (at least three arms of a cross must show) or half the
+    weaker arm of its better bar (two opposite arms: a one-armed cross). A step edge, a
+    corner, a JPEG block corner or a blot larger than the arms shows no arm (one of its
+    flanks matches the line), a scene line one bar.
+    Returns (K,) float; -inf for points outside the image.
+    """
+    K = len(xy)
+    out = np.full(K, -np.inf)
+    if K == 0:
+        return out
+    g = image
+    Hh, W = g.shape
+    r0 = max(1.5, width + s)
+    r = np.linspace(r0, max(arm_half, r0 + 1.0), 6)
+    d = max(1.5, 1.0 * width + 1.5 * s)
+    reach = int(np.ceil(np.hypot(r[-1], d))) + 2
+    x0 = np.floor(xy[:, 0]).astype(int)
+    y0 = np.floor(xy[:, 1]).astype(int)
+    ok = (x0 >= 0) & (x0 < W) & (y0 >= 0) & (y0 < Hh)
+    if not ok.any():
+        return out
+    p = xy[ok]
+    # each point's neighbourhood once (float32 grey, the scan's edge rows and columns
+    # repeated beyond it: an arm across the edge keeps its contrast, one along it has none),
+    # then bilinear reads in it
+    ar = np.arange(-reach, reach + 2)
+    cy = np.clip(y0[ok][:, None] + ar, 0, Hh - 1)
+    cx = np.clip(x0[ok][:, None] + ar, 0, W - 1)
+    win = np.asarray(g[cy[:, :, None], cx[:, None, :]], np.float32)  # (k, n, n)
+    fx, fy = p[:, 0] - x0[ok] + reach, p[:, 1] - y0[ok] + reach  # the point in its window
+    # the offsets of every read: (turns, 4 arms, line / flank / flank, radii, 2)
+    t = np.radians(turn_deg + ARM_TURNS)[:, None] + np.arange(4) * (np.pi / 2)
+    u = np.stack([np.cos(t), np.sin(t)], -1)  # (T, 4, 2)
+    nrm = np.stack([-u[..., 1], u[..., 0]], -1)
+    side = np.array([0.0, d, -d])
+    off = (r[None, None, None, :, None] * u[:, :, None, None, :]
+           + side[None, None, :, None, None] * nrm[:, :, None, None, :])
+    v = _read(win, fx, fy, off.reshape(-1, 2)).reshape((len(p),) + off.shape[:4])
+    v = v.mean(-1)  # (k, T, 4, 3): mean grey along each arm and its flanks
+    d1, d2 = v[..., 0] - v[..., 1], v[..., 0] - v[..., 2]
+    # above both flanks: a step edge along or across the arm is not a line
+    a = sign * np.where(sign > 0, np.minimum(d1, d2), np.maximum(d1, d2))  # (k, T, 4)
+    third = np.sort(a, axis=2)[..., 1]
+    # three arms, or one bar (two opposite arms: a one-armed cross, or a scene line) at
+    # half weight
+    bar = np.maximum(np.minimum(a[..., 0], a[..., 2]), np.minimum(a[..., 1], a[..., 3]))
+    best = np.maximum(third, 0.5 * bar).max(1)
+    out[ok] = best
+    return out
+
+
+def _read(win, fx, fy, off) -> np.ndarray:
+    """Bilinear reads of windows ``win`` (k, n, n) at (fx, fy) (k,) plus offsets ``off``
+    (m, 2) (all within the windows): (k, m). The windows are stacked into one image and
+    read by ``cv2.remap`` a few hundred at a time (its size limit)."""
+    import cv2
+
+    k, n = win.shape[0], win.shape[1]
+    out = np.empty((k, len(off)), np.float32)
+    step = max(1, 30000 // n)
+    for a in range(0, k, step):
+        b = min(a + step, k)
+        img = win[a:b].reshape(-1, n)
+        mx = fx[a:b, None].astype(np.float32) + off[None, :, 0].astype(np.float32)
+        my = ((fy[a:b] + n * np.arange(b - a))[:, None].astype(np.float32)
+              + off[None, :, 1].astype(np.float32))
+        out[a:b] = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out
 
 
 def search_map(R, h, sign, xy_ov, radius):
