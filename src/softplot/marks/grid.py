@@ -624,6 +624,13 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
     return p0, Bc, lim_px
 
 
+#: the format's edge evidence per step of :func:`_edge_steps`, in units of the mean evidence
+#: of a cross
+EDGE_WEIGHT = 0.25
+#: shifts scoring within this many crosses' evidence of the best are weighed by the edges
+EDGE_REACH = 2.0
+
+
 def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
              frame_evidence=None, format_mm=None, part=None,
              seeable=None) -> Identification | None:
@@ -631,21 +638,24 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     certificate's grid best.
 
     Works on a map of relative lattice indices covering every admissible shift: the score of
-    a shift is the peak score on the grid minus the score off it, minus a penalty for every
-    cross of the grid that would lie inside the image without a peak (box sums over integral
-    images give all shifts at once); the format's edges the scan shows decide between shifts
-    the crosses cannot tell apart. The naming is ambiguous when another shift scores as
-    well once the crosses it misses where no cross could be seen (``seeable(xy, found)``:
-    positions (K, 2) and the lattice's crosses (n, 2), pixel system -> (K,) bool, false
-    over a flat dark region or the border beyond the format)
-    are forgiven: a dark region over the outer row hides the format's edge with it.
-    Arguments as :func:`fit_grid`'s; None when fewer than 3 peaks fall on the grid.
+    a shift is the evidence of the peaks on the grid (their scores above the clutter's,
+    :func:`_evidence`) minus that of the peaks off it, minus a penalty for every cross of
+    the grid that would lie inside the image without a peak (box sums over integral
+    images give all shifts at once), except where no cross could be seen
+    (``seeable(xy, found)``: positions (K, 2) and the lattice's crosses (n, 2), pixel
+    system -> (K,) bool, false over a flat dark region or the border beyond the format);
+    the format's edges the scan shows (:data:`EDGE_WEIGHT` per step of
+    :func:`_edge_steps`) decide between shifts the crosses cannot tell apart. The naming is
+    ambiguous when another shift scores within two steps of the edges' evidence, or as well
+    once the unseeable crosses count as missed: a dark region over the outer row hides the
+    format's edge with it. Arguments as :func:`fit_grid`'s; None when fewer than 3 peaks
+    fall on the grid.
     """
     cand, p0, Bc = lat.cand, lat.p0, lat.B
     ci, ri = lat.idx[cand, 0], lat.idx[cand, 1]
     W, Hh = image_size
     rows, cols = reseau.rows, reseau.cols
-    sc = score[cand]
+    sc = _evidence(score, cand)
     mean_sc = float(sc.mean()) if sc.size else 1.0
     i_lo, i_hi = int(ci.min()) - cols + 1, int(ci.max()) + cols - 1
     j_lo, j_hi = int(ri.min()) - rows + 1, int(ri.max()) + rows - 1
@@ -665,12 +675,13 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
         hidden.ravel()[k] = ~np.asarray(seeable(pos[k], found), bool)
 
     def box_sums(Mp, r0=0, r1=rows, c0=0, c1=cols):
-        c = np.zeros((nj + 1, ni + 1))
-        c[1:, 1:] = Mp.cumsum(0).cumsum(1)
         # box of rows r0:r1 x cols c0:c1 of the grid whose row 0, col 0 has the relative
-        # index (a, b)
-        a = np.arange(nj - rows + 1)[:, None]
-        b = np.arange(ni - cols + 1)[None, :]
+        # index (a, b); the box may reach beyond the grid (zeros beyond the map)
+        pr, pc = max(0, -r0, r1 - rows), max(0, -c0, c1 - cols)
+        c = np.zeros((nj + 2 * pr + 1, ni + 2 * pc + 1))
+        c[1:, 1:] = np.pad(Mp, ((pr, pr), (pc, pc))).cumsum(0).cumsum(1)
+        a = np.arange(nj - rows + 1)[:, None] + pr
+        b = np.arange(ni - cols + 1)[None, :] + pc
         return c[a + r1, b + c1] - c[a + r0, b + c1] - c[a + r1, b + c0] + c[a + r0, b + c0]
 
     on = box_sums(S)
@@ -685,23 +696,31 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     b = np.arange(ni - cols + 1)[None, :] + i_lo + (cols - 1) / 2.0
     off = np.hypot(p0[0] + Bc[0, 0] * b + Bc[0, 1] * a - (W - 1) / 2,
                    p0[1] + Bc[1, 0] * b + Bc[1, 1] * a - (Hh - 1) / 2)
-    total = on - (sc.sum() - on) - 0.5 * mean_sc * unseen - 1e-6 * off
+    # peaks off the grid count against a shift, but for those on or beyond its format's
+    # edge (a quarter pitch or less inside): the edge and the border give peaks, no cross
+    held = sc.sum()
+    if format_mm is not None:
+        ky = max(0, int(np.ceil(0.5 * format_mm[1] / reseau.pitch_y - 0.25 - (rows - 1) / 2)) - 1)
+        kx = max(0, int(np.ceil(0.5 * format_mm[0] / reseau.pitch_x - 0.25 - (cols - 1) / 2)) - 1)
+        held = box_sums(S, -ky, rows + ky, -kx, cols + kx)
+    total = on - (held - on) - 0.5 * mean_sc * unseen - 1e-6 * off
     # the same, forgiving crosses missed where none could be seen
     lenient = total + 0.5 * mean_sc * box_sums(hidden)
     if frame_evidence is not None and format_mm is not None:
         # shifts the crosses cannot tell apart (a part of the grid: a crop through it, a half
         # frame): the film's format edge, where the scan shows it, decides
-        near = np.argwhere((total >= total.max() - 0.5 * mean_sc)
-                           | (lenient >= lenient.max() - 0.5 * mean_sc))
+        near = np.argwhere((total >= total.max() - EDGE_REACH * mean_sc)
+                           | (lenient >= lenient.max() - EDGE_REACH * mean_sc))
         if len(near) > 1:
             ev = _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau, format_mm)
-            total[near[:, 0], near[:, 1]] += 0.1 * mean_sc * ev
-            lenient[near[:, 0], near[:, 1]] += 0.1 * mean_sc * ev
-    ja, ib = np.unravel_index(int(np.argmax(total)), total.shape)
-    # another shift as good (to a quarter of a cross's score) once hidden crosses are
-    # forgiven, or to a hundredth without
+            total[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
+            lenient[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
+    # crosses missed where none could be seen are no evidence against a shift
+    ja, ib = np.unravel_index(int(np.argmax(lenient)), lenient.shape)
+    # another shift as good (to two steps of the edges' evidence), or as good when the
+    # unseeable crosses count as missed (to a hundredth of a cross)
     ambiguous = (int(np.sum(total >= total[ja, ib] - 0.01 * mean_sc)) > 1
-                 or int(np.sum(lenient >= lenient[ja, ib] - 0.25 * mean_sc)) > 1)
+                 or int(np.sum(lenient >= lenient[ja, ib] - 0.5 * mean_sc)) > 1)
     dr = -(ja + j_lo)  # relative index of row 0 is ja + j_lo
     dc = -(ib + i_lo)
     col, row = ci + dc, ri + dr
@@ -709,6 +728,21 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     if ins.sum() < 3:
         return None
     return Identification(cand=cand[ins], node=row[ins] * cols + col[ins], ambiguous=ambiguous)
+
+
+def _evidence(score, cand):
+    """What each peak of ``cand`` tells of a cross: its score; for a peak scoring less than
+    half the median of the lattice's (the crosses of a scan score alike), its score above
+    the weakest clutter's (the 10th percentile of the scores of the peaks off the lattice,
+    10 or more of them): a row of peaks along a format's edge that scores like the clutter
+    tells nothing, for a naming or against it."""
+    off = np.ones(len(score), bool)
+    off[cand] = False
+    sc = score[cand].astype(float)
+    weak = sc < 0.5 * float(np.median(sc)) if sc.size else sc.astype(bool)
+    if off.sum() >= 10 and weak.any():
+        sc[weak] = np.maximum(sc[weak] - float(np.percentile(score[off], 10)), 0.0)
+    return sc
 
 
 def _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau: Reseau, format_mm):

@@ -191,9 +191,11 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
         if done and bound < max(done):
             continue
         xy = coarse.ov_to_full(pk.xy, f)
+        # a cross nearer the scan's edge than the correlation map reaches (its offset) has
+        # no peak: it is never a missed cross
         fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
                                  px_per_mm=px_per_mm, rotate_deg=rotate_deg,
-                                 margin_px=0.5 * cands.template.length * f,
+                                 margin_px=max(0.5 * cands.template.length, cands.half) * f,
                                  frame_evidence=frame_evidence(ov.image, f, px_per_mm),
                                  format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
                                  seeable=show)
@@ -233,7 +235,7 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
                      3 * n_in + 100, g.rotation_deg)
     g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
                        (scan.width, scan.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
-                       margin_px=0.5 * shape.length, max_rotation_deg=3.0,
+                       margin_px=max(0.5 * shape.length, h2 * f), max_rotation_deg=3.0,
                        frame_evidence=frame_evidence(ov.image, f, ppm),
                        format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
                        seeable=seeable(ov.image, f, ppm, min(res.pitch_x, res.pitch_y)))
