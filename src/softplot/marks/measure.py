@@ -109,6 +109,8 @@ class Fine:
     arms: np.ndarray | None = None
     #: the independent-pixel covariance (the acceptance and outlier tests' precision)
     cov_white: np.ndarray | None = None
+    #: the fitted contrast (mark minus background, grey units; NaN where not fitted)
+    gain: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -646,6 +648,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     Afit = np.full((n, 2, 2), np.nan)
     edge = np.full(n, np.nan)
     s_fit = np.full(n, np.nan)
+    gain = np.full(n, np.nan)
     reason = [""] * n
     fast = min(init_err, 0.6)
     passes = [(np.arange(n), fast)]
@@ -702,7 +705,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             if p_i == 0 or good[j]:
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
                 score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
-                s_fit[i] = res.s[j]
+                s_fit[i], gain[i] = res.s[j], res.gain[j]
                 cov_w[i] = res.cov_white[j]
             if not good[j]:
                 retry.append(i)
@@ -715,7 +718,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 s0, fit_blur = held, False
     arms = np.where(ok, 2, 0) if shape.kind == "cross" else None
     return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms,
-                cov_w)
+                cov_w, gain)
 
 
 def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.ndarray:
@@ -755,7 +758,7 @@ def lone_arm_keep(shape: MarkShape, u, v, axis: int) -> np.ndarray:
 def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                     sign: int, rules: AcceptRules | None = None, *, max_shift: float,
                     cnr_ref: float | None = None, along_sd: np.ndarray | float = 1.0,
-                    blur: float | None = None) -> Fine:
+                    blur: float | None = None, gain_ref: float | None = None) -> Fine:
     """Crosses of which only one bar is visible (the other faded, aliased, scratched or
     covered), measured as a line: precise across the bar, nothing along it.
 
@@ -767,9 +770,11 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     passes the acceptance tests of ``rules`` for its two half-arms (polarity, contrast to
     noise, correlation with the bar, both half-arms supported, at most ``max_shift`` px
     across from ``c0``) and, with ``cnr_ref`` (the two-armed crosses' median contrast to
-    noise), its contrast to noise is at least half that: a bar of the reseau, not a faint
-    scene line. Of two accepted bars the better-correlated is kept (a cross whose two bars
-    both pass is a whole cross the caller's tests refused: not claimed here).
+    noise), its contrast to noise is at least half that, or, with ``gain_ref`` (their median
+    contrast, grey units), its contrast is: a bar of the reseau, not a faint scene line (the
+    noise under a lone bar, a scene's or a dark region's, is not the crosses'). Of two
+    accepted bars the better-correlated is kept (a cross whose two bars both pass is a
+    whole cross the caller's tests refused: not claimed here).
 
     The bar fixes the centre across it only: its tips are the part of a cross that fades
     first, and its length is not known (a certificate's is a starting guess). So the
@@ -817,7 +822,10 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
         ok &= np.abs(np.nan_to_num(across, nan=np.inf)) <= max_shift
         ok &= np.nan_to_num(res.sigma, nan=np.inf) <= rules.max_sigma
         if cnr_ref is not None and cnr_ref > 0:
-            ok &= res.cnr >= 0.5 * cnr_ref
+            strong = res.cnr >= 0.5 * cnr_ref
+            if gain_ref is not None and gain_ref > 0:
+                strong |= np.abs(np.nan_to_num(res.gain)) >= 0.5 * gain_ref
+            ok &= strong
         passed[:, axis] = ok
         fits.append((res, nrm, across))
     # the other bar must be absent: its own fit has less than bar_absent of this bar's

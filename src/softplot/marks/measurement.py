@@ -211,6 +211,8 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
             fine.cov_white[i] = f2.cov_white[j]
             fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
                 f2.score[j], f2.cnr[j], True, "")
+            if fine.gain is not None and f2.gain is not None:
+                fine.gain[i] = f2.gain[j]
 
 
 def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_shift,
@@ -247,7 +249,7 @@ def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_sh
                     f2.score[j], f2.cnr[j], True, "")
                 if fine.s is not None and f2.s is not None:
                     fine.s[i] = f2.s[j]
-                for extra in ("cov_white", "arms"):
+                for extra in ("cov_white", "arms", "gain"):
                     a, b = getattr(fine, extra, None), getattr(f2, extra, None)
                     if a is not None and b is not None:
                         a[i] = b[j]

@@ -384,7 +384,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     their neighbours predict; along the bar the position is that prediction, with the
     per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
     predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
-    bar's contrast to noise must be at least half the measured crosses' median. ``cov``:
+    bar's contrast to noise, or its contrast, must be at least half the measured crosses'
+    median (the noise under a lone bar is not always the crosses'). ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
     st = np.array(status)
@@ -400,8 +401,10 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
+    gain_ref = (float(np.median(np.abs(fine.gain[fine.ok])))
+                if fine.gain is not None and fine.ok.any() else None)
     f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
-                         along_sd=along, blur=blur, cnr_ref=cnr_ref)
+                         along_sd=along, blur=blur, cnr_ref=cnr_ref, gain_ref=gain_ref)
     for j, i in enumerate(q):
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
