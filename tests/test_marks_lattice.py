@@ -97,9 +97,9 @@ def test_a_3x3_reseau_over_a_busy_scene_is_not_refused(seed):
     ("pentax-645", "busy", 1, 300),
 ])
 def test_a_photograph_without_a_reseau_is_refused(camera, scene, seed, dpi):
-    """A plain photograph (the scene, no crosses): its texture falls on the reseau's lattice
-    at many nodes by chance, but those marks stand no higher than the rest: refused in one
-    line, never given a grid."""
+    """A plain photograph (the scene, no crosses; its texture may fall on the reseau's
+    lattice at many nodes by chance): refused in one line, never given a grid, however the
+    candidates are scored."""
     from softplot.io import Scan
     from softplot.marks import DetectionError, detect
     from softplot.synthetic import ScanSpec, render_scan

@@ -76,12 +76,6 @@ __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_gri
 #: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
 #: a part of 3 x 3 crosses with a few missing still passes
 MIN_PART = 6
-#: a lattice whose crosses stand above the scan's other candidates by less than this, on
-#: average (:attr:`softplot.marks.grid.GridFit.score` per cross: in units of the others'
-#: spread above their median), is the scene's texture falling on a lattice by chance, not
-#: a reseau (a reseau's crosses stand at least 0.65 above, a scene's chance lattices of
-#: many nodes 0.25-0.4)
-MIN_MARGIN = 0.45
 
 
 def detect(
@@ -230,9 +224,8 @@ def _check_size(sc, cam, dpi, name) -> None:
 
 
 def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lattice:
-    """Candidates and lattice (stages 2 and 3); no lattice, one of fewer than
-    :data:`MIN_PART` crosses, or one no stronger than the other candidates
-    (:data:`MIN_MARGIN`), is a :class:`DetectionError`."""
+    """Candidates and lattice (stages 2 and 3); no lattice, or one of fewer than
+    :data:`MIN_PART` crosses, is a :class:`DetectionError`."""
     res = cam.reseau
     ppm = dpi / MM_PER_INCH
     cands = reseau_candidates(sc, ov, cam, polarity, blur_px)
@@ -258,11 +251,6 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
         raise DetectionError(
             f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm, found only {n_assigned} on a lattice")
-    if lat.grid.score < MIN_MARGIN * n_assigned:
-        raise DetectionError(
-            f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
-            f"{res.pitch_x}x{res.pitch_y} mm; the {n_assigned} marks on a lattice are no "
-            "stronger than the scan's other cross-like marks (scene texture)")
     return lat
 
 
