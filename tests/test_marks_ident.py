@@ -165,6 +165,8 @@ def test_the_centres_win_over_a_lattice_of_weaker_peaks_along_long_arms(seed):
     56,  # Rollei quarter frame at 334 dpi: crosses cut by the scan's edge
     72,  # Rollei half frame, web copy: a peak on the border beyond the format's corner
     91,  # Hasselblad whole frame at 205 dpi, its top row under a black sky
+    130,  # plate at 399 dpi: its top row under a black sky, peaks along the bottom edge
+    131,  # aerial part: a wrong naming puts rows on the border, where no cross would show
 ])
 def test_sweep_renders_are_named_from_their_crosses_and_the_formats_edge(seed):
     """Renders of the robustness sweep that show their rows and columns (an end row and

@@ -626,7 +626,7 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
 
 #: the format's edge evidence per step of :func:`_edge_steps`, in units of the mean evidence
 #: of a cross
-EDGE_WEIGHT = 0.25
+EDGE_WEIGHT = 0.5
 #: shifts scoring within this many crosses' evidence of the best are weighed by the edges
 EDGE_REACH = 2.0
 
@@ -720,7 +720,7 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     # another shift as good (to two steps of the edges' evidence), or as good when the
     # unseeable crosses count as missed (to a hundredth of a cross)
     ambiguous = (int(np.sum(total >= total[ja, ib] - 0.01 * mean_sc)) > 1
-                 or int(np.sum(lenient >= lenient[ja, ib] - 0.5 * mean_sc)) > 1)
+                 or int(np.sum(lenient >= lenient[ja, ib] - 2 * EDGE_WEIGHT * mean_sc)) > 1)
     dr = -(ja + j_lo)  # relative index of row 0 is ja + j_lo
     dc = -(ib + i_lo)
     col, row = ci + dc, ri + dr
@@ -731,17 +731,13 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
 
 
 def _evidence(score, cand):
-    """What each peak of ``cand`` tells of a cross: its score; for a peak scoring less than
-    half the median of the lattice's (the crosses of a scan score alike), its score above
-    the weakest clutter's (the 10th percentile of the scores of the peaks off the lattice,
-    10 or more of them): a row of peaks along a format's edge that scores like the clutter
-    tells nothing, for a naming or against it."""
-    off = np.ones(len(score), bool)
-    off[cand] = False
+    """What each peak of ``cand`` tells of a cross: its score, or nothing for a peak scoring
+    less than half the median of the lattice's peaks (the crosses of a scan score alike; a
+    row of peaks along a format's edge, or a scene feature on a node, far less): such a peak
+    counts neither for a naming nor against it."""
     sc = score[cand].astype(float)
-    weak = sc < 0.5 * float(np.median(sc)) if sc.size else sc.astype(bool)
-    if off.sum() >= 10 and weak.any():
-        sc[weak] = np.maximum(sc[weak] - float(np.percentile(score[off], 10)), 0.0)
+    if sc.size:
+        sc[sc < 0.5 * float(np.median(sc))] = 0.0
     return sc
 
 
