@@ -318,12 +318,26 @@ def _pin(Nm, g, active):
     Nm[:, diag, diag] = np.where(Nm[:, diag, diag] > 0, Nm[:, diag, diag], 1.0)
 
 
-def _step(p, data, shape, active, robust, init=False):
+def _add_prior(Nm, g, p, prior, wrr, wsum, active):
+    """A Gaussian prior ``(k, value (N,), sd)`` on parameter ``k`` added to the normal
+    equations ``Nm``, ``g`` (in place) in the units of the weighted residuals: weight
+    ``s0^2 / sd^2`` with ``s0^2 = wrr / (wsum - active)`` the residual variance."""
+    if prior is None:
+        return
+    k, value, sd = prior
+    lam = (np.asarray(wrr, float) / np.maximum(np.asarray(wsum, float) - active.sum(), 1.0)
+           / sd**2)
+    Nm[:, k, k] += lam
+    g[:, k] += lam * (value - p[:, k])
+
+
+def _step(p, data, shape, active, robust, init=False, prior=None):
     """One (robust) Gauss-Newton step on ``p`` in place.
 
     Returns the centre update (px) and an estimate of the centre's standard deviation (px).
     With ``init`` the radiometry (offset, contrast) is first set by linear regression of the
-    data on the template at the current geometry.
+    data on the template at the current geometry. ``prior`` ``(k, value (N,), sd)``: a
+    Gaussian prior on parameter ``k`` (:func:`_add_prior`).
     """
     G, valid = data[2], data[3]
     jit = shape.kind == "cross" and kernels.ready()
@@ -361,6 +375,7 @@ def _step(p, data, shape, active, robust, init=False):
         Tu, Tv = geo[1], geo[2]
     if jit:  # the weights, normal equations and update compiled too (the same sums)
         r, w_rob, w, Nm, g, wrr, wsum = kernels.weigh(p, data, M, J, robust)
+        _add_prior(Nm, g, p, prior, wrr, wsum, active)
         Ninv, inv_ok = kernels.invert(Nm, g, active)
         if inv_ok.all():
             dc, sig, cov, s0sq = kernels.advance(Ninv, g, wsum, wrr, int(active.sum()), p)
@@ -380,6 +395,7 @@ def _step(p, data, shape, active, robust, init=False):
         w = w_rob * data[5] * ~cens
         Nm, g = _normal(J, w, r, active)
         wrr = (w * r * r).sum(1, dtype=float)
+        _add_prior(Nm, g, p, prior, wrr, w.sum(1, dtype=float), active)
     # a touch of Levenberg-Marquardt damping keeps ill-posed nuisance parameters in check
     diag = np.arange(_NP)
     Nm[:, diag, diag] *= 1.0 + 1e-6
@@ -571,6 +587,68 @@ def _cov_from_sums(cc, K, s0sq):
     return C
 
 
+def _drop_sets(redo, part, full):
+    """The marks ``redo`` refitted after the half-arm test dropped their half ``part`` (0..3),
+    each set with its active parameters. With a held affine (``full`` without the affine),
+    the tilt of the bar that lost a half is freed (``a10`` for the bar along ``u``, parts 0
+    and 2; ``a01`` for the bar along ``v``, parts 1 and 3): the held affine let the test see
+    the pulled half, but the centre of a bar measured from one half on a held tilt that is
+    off by ``d`` moves by ``d L / 2`` (``L`` the half-arm; a held affine predicted by the
+    neighbours misses the film's deformation at the grid's corners by 1e-3 and more, 0.05 px
+    at 2900 dpi), while the remaining half measures its own tilt."""
+    if full[2:6].all():
+        return [(redo, full)]
+    out = []
+    for parts, k in (((0, 2), 4), ((1, 3), 3)):
+        sel = np.isin(part, parts)
+        if sel.any():
+            act = full.copy()
+            act[k] = True
+            out.append((redo[sel], act))
+    return out
+
+
+def _refine(p, data, shape, active, todo, last, converged, max_iter, tol, prior=None):
+    """Robust Gauss-Newton steps of the marks ``todo`` (in place on ``p``, ``last``,
+    ``converged``) until each has converged; ``prior`` ``(k, value (all marks,), sd)`` as
+    :func:`_add_prior`'s."""
+    for _ in range(max_iter):
+        sub = tuple(a[todo] for a in data)
+        q = p[todo]
+        pr = None if prior is None else (prior[0], prior[1][todo], prior[2])
+        dc, sig, st = _step(q, sub, shape, active, robust=True, prior=pr)
+        p[todo] = q
+        for k_, v_ in st.items():
+            last[k_][todo] = v_
+        done = _converged(dc, sig, tol)
+        converged[todo[done]] = True
+        todo = todo[~done]
+        if todo.size == 0:
+            break
+
+
+#: standard deviation of the prior on a bar's tilt about the held affine's when that tilt is
+#: freed (:func:`_refit_dropped`): the neighbours' prediction misses the film's deformation by
+#: about 1e-3 at a small reseau's corners (1.4e-3 and 1.7e-3 on the sweep's 3 x 3 grids at
+#: 2900-3000 dpi). Where one half of a bar measures its tilt far better (long arms at a high
+#: resolution) the data decide; where not (short arms, scene content beside the half) the
+#: held tilt does
+TILT_PRIOR = 1e-3
+
+
+def _refit_dropped(p, data, shape, full, act, todo, last, converged, max_iter, tol):
+    """Refit the marks ``todo`` after the half-arm test dropped a half (in place): with the
+    parameters ``full``, then, where ``act`` frees a bar's tilt (:func:`_drop_sets`), from
+    there with the tilt estimated under the prior :data:`TILT_PRIOR` about the held one."""
+    _refine(p, data, shape, full, todo, last, converged, max_iter, tol)
+    free = np.where(act & ~full)[0]
+    if free.size == 0:
+        return
+    held = p[:, free[0]].copy()
+    _refine(p, data, shape, act, todo, last, converged, max_iter, tol,
+            prior=(int(free[0]), held, TILT_PRIOR))
+
+
 def lsm(
     patches: np.ndarray,
     origin: np.ndarray,
@@ -629,7 +707,9 @@ def lsm(
     arm_check : bool
         Crosses only: compare the two halves of each arm (see :func:`_arm_outliers`); where
         they disagree beyond ``arm_z`` standard deviations, the half that fits worse gets
-        weight 0 and the mark is fitted again from the other three.
+        weight 0 and the mark is fitted again from the other three (without ``fit_shape``
+        then with the tilt of the bar that lost a half estimated under a prior about the held
+        one, :func:`_refit_dropped`).
     arm_z : float
         Threshold of that test.
     sat_bg : (N, h, w) array of 0/1, optional
@@ -710,19 +790,8 @@ def lsm(
             drop = _parts(shape, geo[4], geo[5]) == bad[redo, None]
             Wp = data[5]
             Wp[redo] = np.where(drop, 0.0, Wp[redo])
-            todo = redo
-            for _ in range(max_iter):
-                sub = tuple(a[todo] for a in data)
-                q = p[todo]
-                dc, sig, st = _step(q, sub, shape, full, robust=True)
-                p[todo] = q
-                for k_, v_ in st.items():
-                    last[k_][todo] = v_
-                done = _converged(dc, sig, tol)
-                converged[todo[done]] = True
-                todo = todo[~done]
-                if todo.size == 0:
-                    break
+            for todo, act in _drop_sets(redo, bad[redo], full):
+                _refit_dropped(p, data, shape, full, act, todo, last, converged, max_iter, tol)
     X, Y, G, valid, Sb = data[:5]
     vf = valid.astype(np.float32)
     sw = np.maximum(vf.sum(1), 1.0)
