@@ -31,8 +31,15 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     Returns (Q, C); with ``gradient`` also the polynomial's gradient at each query point
     (Q, C, 2) (value units per mm) and the variance factor of that gradient (Q,) (its two
     components' variances summed, for unit noise on the values; per mm^2).
+
+    A batch of value sets: ``n_val`` (B, M, C) with ``n_dev`` (B, M) or None fits each set
+    as its own call would, in one pass (the neighbours are found once), and returns
+    (B, Q, C) (not with ``gradient``).
     """
-    n_val = np.asarray(n_val, float).reshape(len(n_film), -1)
+    n_val = np.asarray(n_val, float)
+    batch = n_val.ndim == 3
+    n_val = n_val.reshape(len(n_val) if batch else 1, len(n_film), -1)  # (B, M, C)
+    B = n_val.shape[0]
     k = min(k_max, len(n_film) - 1)
     d, j = cKDTree(n_film).query(q_film, k=k + 1)
     # leave the query point out (a zero-distance match), else the farthest neighbour
@@ -53,9 +60,14 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     if n_sigma is not None:
         sg = np.nan_to_num(np.asarray(n_sigma, float), nan=1.0)
         w = w / (1.0 + (sg[j] / (float(np.median(sg)) + 1e-6)) ** 2)
+    Q = len(d)
     if n_dev is not None:
-        spread = 1.4826 * float(np.median(n_dev)) + 1e-12
-        w = w / (1.0 + (n_dev[j] / (3.0 * spread)) ** 2)
+        n_dev = np.asarray(n_dev, float).reshape(B, -1)
+        spread = 1.4826 * np.median(n_dev, axis=1) + 1e-12  # (B,)
+        w = w / (1.0 + (n_dev[:, j] / (3.0 * spread[:, None, None])) ** 2)  # (B, Q, k)
+        D = np.broadcast_to(D, (B,) + D.shape).reshape(B * Q, k, -1)
+        w = w.reshape(B * Q, k)
+    # else the same weights for every value set: one fit, its columns the sets' values
     # per query the highest degree its neighbours determine (a partial grid of a few rows
     # cannot carry a cubic in y): the terms of a degree whose normal equations are
     # ill-conditioned are dropped for that query; a plane that is not determined (collinear
@@ -68,8 +80,8 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     # the leading blocks of Nn are the normalised lower-degree matrices, and no eigenvalue of
     # a principal submatrix lies below the smallest of the whole (Cauchy interlacing): where
     # the full degree is well conditioned every lower one is, and only the rest are tested
-    level = np.zeros(len(d), int)  # terms used: 3 plane, 6 quadratic, 10 cubic (0: none)
-    full = np.linalg.eigvalsh(Nn)[:, 0] > 1e-6
+    level = np.zeros(len(w), int)  # terms used: 3 plane, 6 quadratic, 10 cubic (0: none)
+    full = _smallest_eig_above(Nn, 1e-6)
     level[full] = p
     rest = np.where(~full)[0]
     lev_r = np.zeros(rest.size, int)
@@ -77,8 +89,8 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     for L in (3, 6, 10):
         if L >= p or rest.size == 0:
             break
-        lam = np.linalg.eigvalsh(Nn[rest, :L, :L])[:, 0]
-        lev_r = np.where((lam > 1e-6) & (lev_r == below), L, lev_r)
+        well = _smallest_eig_above(Nn[rest, :L, :L], 1e-6)
+        lev_r = np.where(well & (lev_r == below), L, lev_r)
         below = L
     level[rest] = lev_r
     # the dropped terms' rows and columns of the normal equations are 0 (their coefficients
@@ -87,7 +99,17 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     DwT = DwT0 * use[:, :, None]
     N = N0 * (use[:, :, None] * use[:, None, :]) + 1e-9 * np.eye(p)
     N[:, np.arange(p), np.arange(p)] += 1.0 - use
-    coef = np.linalg.solve(N, np.matmul(DwT, n_val[j]))  # (Q, p, C)
+    C = n_val.shape[-1]
+    if n_dev is not None:  # (B * Q, k, C)
+        vals = n_val[:, j].reshape(B * Q, k, C)
+    else:  # (Q, k, B * C)
+        vals = n_val[:, j].transpose(1, 2, 0, 3).reshape(Q, k, B * C)
+    coef = np.linalg.solve(N, np.matmul(DwT, vals))  # (rows, p, columns)
+    if batch:
+        c0 = coef[:, 0, :]
+        if n_dev is not None:
+            return c0.reshape(B, Q, C)
+        return c0.reshape(Q, B, C).transpose(1, 0, 2)
     if not gradient:
         return coef[:, 0, :]
     Ni = np.linalg.inv(N)
@@ -95,6 +117,24 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
     grad[level < 3] = np.nan
     return coef[:, 0, :], grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
+
+
+def _smallest_eig_above(S, tol):
+    """Whether the smallest eigenvalue of each symmetric matrix ``S`` (n, p, p) exceeds
+    ``tol`` (n,) bool: whether ``S - tol I`` is positive definite, i.e. has a Cholesky
+    factor with positive pivots (vectorised over the stack, p steps: several times cheaper
+    than the eigenvalues)."""
+    A = np.array(S, float)
+    p = A.shape[-1]
+    A[:, np.arange(p), np.arange(p)] -= tol
+    ok = np.ones(len(A), bool)
+    for c in range(p):
+        piv = A[:, c, c]
+        ok &= piv > 0.0
+        piv = np.where(ok, piv, 1.0)
+        col = A[:, c + 1:, c] / piv[:, None]  # (n, p - c - 1)
+        A[:, c + 1:, c + 1:] -= col[:, :, None] * A[:, c, c + 1:][:, None, :]
+    return ok
 
 
 def local_prediction(film, r, k_max=16, sigma=None):
@@ -107,14 +147,15 @@ def local_prediction(film, r, k_max=16, sigma=None):
     the grid's outline, where the fit extrapolates, the quadratic is kept. A second pass
     lowers the weight of neighbours that depart from their own prediction (one bad neighbour
     must not condemn a good mark, at a corner especially). Returns the predicted residuals
-    (M, 2).
+    (M, 2); for a batch of residual sets ``r`` (B, M, 2), each set's as its own call would,
+    (B, M, 2).
     """
     pred = local_fit(film, film, r, k_max, 2, n_sigma=sigma)
-    dev = np.hypot(*(r - pred).T)
+    dev = np.hypot((r - pred)[..., 0], (r - pred)[..., 1])
     out = local_fit(film, film, r, k_max, 2, n_sigma=sigma, n_dev=dev)
     inner = ~outline(film)
     if inner.any():
-        out[inner] = local_fit(film[inner], film, r, 24, 3, n_sigma=sigma, n_dev=dev)
+        out[..., inner, :] = local_fit(film[inner], film, r, 24, 3, n_sigma=sigma, n_dev=dev)
     return out
 
 

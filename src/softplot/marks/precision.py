@@ -59,7 +59,8 @@ def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
         Their reported covariances (px^2, pixel system).
     predict : callable
         ``predict(film, r, sigma=...) -> (M, 2)``: the leave-one-out prediction of each residual
-        from its neighbours' (the outlier test's), ``sigma`` (M,) px their precision.
+        from its neighbours' (the outlier test's), ``sigma`` (M,) px their precision; it is
+        given the simulated draws as one batch ``r`` (B, M, 2) and returns (B, M, 2).
     px_per_mm : float
         Scan resolution (the deformation floor's unit).
     seed : int
@@ -78,12 +79,10 @@ def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
         return 1.0
     sig = np.sqrt(0.5 * (C[:, 0, 0] + C[:, 1, 1]))
     d2 = np.sum((r - predict(film, r, sigma=sig)) ** 2, 1)
-    rng = np.random.default_rng(seed)
-    E = np.zeros(len(film))
-    for _ in range(DRAWS):
-        e = np.einsum("nij,nj->ni", L, rng.standard_normal((len(film), 2)))
-        E += np.sum((e - predict(film, e, sigma=sig)) ** 2, 1)
-    E /= DRAWS
+    # the draws in one batch (``predict`` takes (B, M, 2) as B calls would)
+    z = np.random.default_rng(seed).standard_normal((DRAWS, len(film), 2))
+    e = np.einsum("nij,bnj->bni", L, z)
+    E = np.sum(np.sum((e - predict(film, e, sigma=sig)) ** 2, 2), 0) / DRAWS
     b = 2.0 * (DEFORMATION_FLOOR_UM * 1e-3 * px_per_mm) ** 2  # two axes
     q = np.sort(d2 / (E + b))
     keep = q[: max(int(np.floor((1.0 - TRIM) * len(q))), 1)]
