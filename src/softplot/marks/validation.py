@@ -30,7 +30,7 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "rescue", "lone_arms",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM"]
+           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -46,6 +46,9 @@ MAX_GRID_RMS_MM = 0.3
 #: (:func:`departure_model`: from the mark's own sigma and the scan's prediction error) is
 #: an outlier (for a Gaussian departure a chance of exp(-2.75^2) = 5e-4 per mark)
 OUTLIER_K = 2.75
+#: a cross measured again (:func:`rescue`) has at least this share of the measured crosses'
+#: median contrast (crosses under a 30 % dark region keep 0.3 of it)
+RESCUE_MIN_GAIN = 0.1
 #: the least standard deviation (px) of a lone bar's position along it (the prediction's)
 LONE_ARM_ALONG_MIN_PX = 0.5
 #: lone bars are measured where at least this many crosses are: a plane through four
@@ -110,7 +113,9 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     fitted[idx] = True
     if rescue(scan, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
               pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm, scene_tv=m.scene_tv,
-              blur=held_blur(fine), fitted=fitted, departure=dep):
+              blur=held_blur(fine), fitted=fitted, departure=dep,
+              gain_ref=(float(np.median(np.abs(fine.gain[fine.ok])))
+                        if fine.gain is not None and fine.ok.any() else None)):
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
@@ -295,7 +300,8 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
 
 
 def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
-            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None):
+            sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None,
+            gain_ref=None):
     """Measure rejected and refused crosses again from three of their four half-arms.
 
     A cross rejected by the outlier test was usually pulled by scene content along one
@@ -310,8 +316,11 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
     the acceptance tests and lies within the outlier test's own threshold of that prediction
     is a measurement of the cross by its clean parts (of several such, the best-correlated).
     The blur is held at ``blur`` (px) when given; ``departure``, the outlier test's
-    :func:`departure_model`, tightens that threshold as it does the test's. A cross that
-    was not measured at all is predicted from the measured ones alone.
+    :func:`departure_model`, tightens that threshold as it does the test's. With
+    ``gain_ref`` (the measured crosses' median contrast) a fit of less than
+    :data:`RESCUE_MIN_GAIN` of it is no cross: over a flat region that exposes nothing the
+    noise is quantised away, and a fit of no contrast passes the contrast-to-noise test. A
+    cross that was not measured at all is predicted from the measured ones alone.
     ``cov``: the reported and the independent-pixel covariances (N, 2, 2) each.
     Modifies the arrays in place; returns whether any cross was recovered.
     """
@@ -369,6 +378,8 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
             thr = outlier_threshold(sp, fl, sg, exp)
             d = np.hypot(*(f2.xy - target[grp]).T)
             good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
+            if gain_ref is not None and f2.gain is not None:
+                good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
             for j in np.where(good)[0]:
                 i = rej[grp[j]]
                 best[grp[j]] = f2.score[j]
