@@ -272,6 +272,14 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         if scene_tv:
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
                                rules or AcceptRules(), fit_blur, tv_select, groups)
+    if keep is not None and res.part_gain is not None and res.part_gain.shape[1] == 4:
+        # the half-arm left out has no say: not in the support count, not in the one-bar
+        # test (its pixels were read at zero weight; an absent bar's half there looked half
+        # present and a one-armed cross passed as whole)
+        rows = np.arange(len(c0))
+        dp = np.broadcast_to(np.asarray(drop_part), (len(c0),))
+        res.part_gain[rows, dp] = np.nan
+        res.support[rows, dp] = np.nan
     return res, edge
 
 
@@ -308,6 +316,9 @@ REFIT_DELTA = 0.6
 #: every cross takes this many joint-scene passes; later passes only the crosses that the last
 #: one moved by more than :data:`REFIT_SETTLE` x their sigma (the others have settled)
 REFIT_ALL_PASSES = 2
+#: a lone bar's contrast is at least this share of the measured crosses' median contrast
+#: (:func:`measure_one_arm`), whatever its contrast to noise
+LONE_BAR_MIN_GAIN = 0.1
 REFIT_SETTLE = 0.25
 
 
@@ -772,7 +783,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     across from ``c0``) and, with ``cnr_ref`` (the two-armed crosses' median contrast to
     noise), its contrast to noise is at least half that, or, with ``gain_ref`` (their median
     contrast, grey units), its contrast is: a bar of the reseau, not a faint scene line (the
-    noise under a lone bar, a scene's or a dark region's, is not the crosses'). Of two
+    noise under a lone bar, a scene's or a dark region's, is not the crosses'); with
+    ``gain_ref`` its contrast is at least :data:`LONE_BAR_MIN_GAIN` of it in any case. Of two
     accepted bars the better-correlated is kept (a cross whose two bars both pass is a
     whole cross the caller's tests refused: not claimed here).
 
@@ -826,6 +838,10 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
             if gain_ref is not None and gain_ref > 0:
                 strong |= np.abs(np.nan_to_num(res.gain)) >= 0.5 * gain_ref
             ok &= strong
+        if gain_ref is not None and gain_ref > 0:
+            # and never a bar of almost no contrast: over a region that exposes nothing the
+            # 8-bit noise is quantised away, and a fit of no contrast has a large CNR
+            ok &= np.abs(np.nan_to_num(res.gain)) >= LONE_BAR_MIN_GAIN * gain_ref
         passed[:, axis] = ok
         fits.append((res, nrm, across))
     # the other bar must be absent: its own fit has less than bar_absent of this bar's
