@@ -30,7 +30,8 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "rescue", "lone_arms",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN"]
+           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN",
+           "RESCUE_MAX_SIGMA_RATIO"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -49,6 +50,9 @@ OUTLIER_K = 2.75
 #: a cross measured again (:func:`rescue`) has at least this share of the measured crosses'
 #: median contrast (crosses under a 30 % dark region keep 0.3 of it)
 RESCUE_MIN_GAIN = 0.1
+#: a rescued cross's precision (independent-pixel sigma) is at most this many times the
+#: measured crosses' median
+RESCUE_MAX_SIGMA_RATIO = 2.0
 #: the least standard deviation (px) of a lone bar's position along it (the prediction's)
 LONE_ARM_ALONG_MIN_PX = 0.5
 #: lone bars are measured where at least this many crosses are: a plane through four
@@ -345,6 +349,7 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
                                      n_sigma=sigma[meas])
         pred[meas.size + np.where(miss)[0]] = pm
     edge = outline(film, st == "measured")
+    s_meas = float(np.median(sigma[meas]))
     dev_m = np.hypot(*(r[meas] - pred[: meas.size]).T)
     spread = robust_spread(dev_m, edge[meas])  # constant within each group
     s_in = float(spread[~edge[meas]][0]) if (~edge[meas]).any() else float(spread[0])
@@ -378,6 +383,10 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
             thr = outlier_threshold(sp, fl, sg, exp)
             d = np.hypot(*(f2.xy - target[grp]).T)
             good = f2.ok & (d <= thr) & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
+            # three clean half-arms measure a cross nearly as well as four: a fit far less
+            # precise than the measured crosses lies on the conflicting content it was to
+            # avoid
+            good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
             if gain_ref is not None and f2.gain is not None:
                 good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
             for j in np.where(good)[0]:
