@@ -242,7 +242,6 @@ def test_prediction_off_along_long_arms_is_recentred(off):
     prediction a third of an arm off the centres: the bars' ends show it, the prediction is
     moved to the centres, and every visible cross is measured near the truth (from the
     prediction as given none is: the fits reach a few pixels)."""
-    from softplot.camera import load_camera
     from softplot.io import Scan
     from softplot.marks import grid
     from softplot.marks.marksize import centred_geometry, choose_width, mark_geometry
@@ -255,13 +254,7 @@ def test_prediction_off_along_long_arms_is_recentred(off):
     img, truth = render_scan("rollei-6006", ScanSpec(dpi=dpi, mark_arm_scale=2.2,
                                                      blur_sigma_px=1.2, noise_sigma=0.01), 7)
     sc = Scan.from_array(img, dpi=dpi)
-    cam = load_camera("rollei-6006")
-    tm = {m["name"]: m for m in truth["marks"]}
-    names = cam.reseau.names()
-    txy = np.array([(tm[n]["x"], tm[n]["y"]) for n in names])
-    vis = np.array([tm[n]["state"] == "visible" and not tm[n]["damaged"] for n in names])
-    film = cam.reseau.film()
-    H = grid.projective_fit(film[vis], txy[vis])
+    cam, txy, vis, film, H = _rollei_truth(truth)
     J = grid.h_jacobian(H, film)
     A = np.linalg.inv(J @ np.diag([1.0 / ppm, -1.0 / ppm]))
     guess = cross_shape(cam, ppm)
@@ -299,7 +292,6 @@ def test_a_cross_predicted_at_its_arms_tip_is_rescued(k):
     measures it from its neighbours' prediction with the model's affine, not with that
     fit's (with it, every rescue fit was refused as the wrong size), and finds it near the
     truth."""
-    from softplot.camera import load_camera
     from softplot.io import Scan
     from softplot.marks import grid
     from softplot.marks.measurement import measure_crosses
@@ -312,14 +304,8 @@ def test_a_cross_predicted_at_its_arms_tip_is_rescued(k):
     img, truth = render_scan("rollei-6006", ScanSpec(dpi=dpi, blur_sigma_px=1.0,
                                                      mark_width_scale=3.0), 3)
     sc = Scan.from_array(img, dpi=dpi)
-    cam = load_camera("rollei-6006")
-    tm = {m["name"]: m for m in truth["marks"]}
-    names = cam.reseau.names()
-    txy = np.array([(tm[n]["x"], tm[n]["y"]) for n in names])
-    vis = np.array([tm[n]["state"] == "visible" and not tm[n]["damaged"] for n in names])
+    cam, txy, vis, film, H = _rollei_truth(truth)
     assert vis[k]
-    film = cam.reseau.film()
-    H = grid.projective_fit(film[vis], txy[vis])
     J = grid.h_jacobian(H, film)
     A = np.linalg.inv(J @ np.diag([1.0 / ppm, -1.0 / ppm]))
     shape = cross_shape(cam, ppm)
@@ -371,3 +357,18 @@ def test_lone_bars_on_noisier_ground_are_measured():
         along = M[:, 0] if m["arm_axis"] == "x" else M[:, 1]
         nrm = np.array([-along[1], along[0]]) / np.hypot(*along)
         assert abs(float((det.xy[i] - (m["x"], m["y"])) @ nrm)) < 0.2
+
+
+def _rollei_truth(truth):
+    """(camera, true pixel positions (N, 2), visible and undamaged (N,), film mm (N, 2), the
+    projective film -> pixel model through the visible crosses) of a Rollei render."""
+    from softplot.camera import load_camera
+    from softplot.marks import grid
+
+    cam = load_camera("rollei-6006")
+    tm = {m["name"]: m for m in truth["marks"]}
+    names = cam.reseau.names()
+    txy = np.array([(tm[n]["x"], tm[n]["y"]) for n in names])
+    vis = np.array([tm[n]["state"] == "visible" and not tm[n]["damaged"] for n in names])
+    film = cam.reseau.film()
+    return cam, txy, vis, film, grid.projective_fit(film[vis], txy[vis])
