@@ -22,7 +22,7 @@ from softplot.marks.overview import ReseauOverview
 from softplot.marks.template import MarkShape, cross_shape
 
 __all__ = ["Candidates", "reseau_candidates", "crosses_in", "arm_evidence", "arm_scored",
-           "search_map",
+           "peaks_kept", "search_map",
            "WindowCandidates", "window_candidates", "ARM_POOL", "ARM_TURNS"]
 
 
@@ -80,7 +80,7 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
     # certificate's): the number of candidates kept and the polarity's bound follow it
     n_in = crosses_in(scan, res, px_per_mm)
     peaks, bound = {}, {}
-    keep = 3 * n_in + 100
+    keep = peaks_kept(n_in)
     for sg in polarity_signs(polarity):
         pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                threshold=0.2,
@@ -100,6 +100,12 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
 ARM_POOL = 4
 
 
+def peaks_kept(n_in: int) -> int:
+    """The candidates kept for a scan that can hold ``n_in`` crosses: three per cross and
+    a hundred more (clutter), the best by their arms (:func:`arm_scored`)."""
+    return 3 * n_in + 100
+
+
 def arm_scored(pk, image, sign, arm_half, width, s, n_in, keep, turn_deg=0.0):
     """The NCC peaks ``pk`` (overview pixel system) scored by their arms: each correlation
     times its :func:`arm_evidence` over the ``n_in``-th best evidence (at most 1; the
@@ -116,6 +122,8 @@ def arm_scored(pk, image, sign, arm_half, width, s, n_in, keep, turn_deg=0.0):
     order = np.argsort(-score, kind="stable")[:keep]
     order = order[score[order] > 0]
     return coarse.Peaks(pk.xy[order], score[order], pk.sign[order])
+
+
 #: rotations (degrees from the pixel axes) the arms of :func:`arm_evidence` are read at
 ARM_TURNS = np.arange(-20.0, 20.1, 5.0)
 

@@ -16,7 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from softplot.marks import coarse, grid
-from softplot.marks.candidates import ARM_POOL, Candidates, arm_scored, crosses_in
+from softplot.marks.candidates import (
+    ARM_POOL,
+    Candidates,
+    arm_scored,
+    crosses_in,
+    peaks_kept,
+)
 from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs
 from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
@@ -228,11 +234,11 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
     n_in = crosses_in(scan, res, ppm)
     pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
                                                           0.5 * shape_ov.length)),
-                            threshold=0.2, max_peaks=ARM_POOL * (3 * n_in + 100),
+                            threshold=0.2, max_peaks=ARM_POOL * peaks_kept(n_in),
                             sign=lat.sign)
     # scored by their arms (turned like the grid), as the first candidates were
     pk2 = arm_scored(pk2, ov.image, lat.sign, arm_half, shape_ov.width, s_ov, n_in,
-                     3 * n_in + 100, g.rotation_deg)
+                     peaks_kept(n_in), g.rotation_deg)
     g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
                        (scan.width, scan.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
                        margin_px=max(0.5 * shape.length, h2 * f), max_rotation_deg=3.0,

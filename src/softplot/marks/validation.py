@@ -27,7 +27,7 @@ from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "lone_arms",
+           "rescue", "lone_arms", "median_gain",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN",
@@ -118,8 +118,7 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     if rescue(scan, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
               pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm, scene_tv=m.scene_tv,
               blur=held_blur(fine), fitted=fitted, departure=dep,
-              gain_ref=(float(np.median(np.abs(fine.gain[fine.ok])))
-                        if fine.gain is not None and fine.ok.any() else None)):
+              gain_ref=median_gain(fine)):
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
@@ -303,6 +302,15 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     return Hm, residual, rms, coef
 
 
+def median_gain(fine) -> float | None:
+    """The accepted fits' median contrast (grey units, absolute) of a
+    :class:`~softplot.marks.measure.Fine`, or None where none was accepted: the reference
+    of the rescue's and the lone bars' contrast tests."""
+    if fine.gain is None or not fine.ok.any():
+        return None
+    return float(np.median(np.abs(fine.gain[fine.ok])))
+
+
 def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
             sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None,
             gain_ref=None):
@@ -421,10 +429,9 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
-    gain_ref = (float(np.median(np.abs(fine.gain[fine.ok])))
-                if fine.gain is not None and fine.ok.any() else None)
     f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
-                         along_sd=along, blur=blur, cnr_ref=cnr_ref, gain_ref=gain_ref)
+                         along_sd=along, blur=blur, cnr_ref=cnr_ref,
+                         gain_ref=median_gain(fine))
     for j, i in enumerate(q):
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
