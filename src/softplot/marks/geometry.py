@@ -24,7 +24,7 @@ crosses, crosses under a dark sky) are left out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import map_coordinates, uniform_filter1d
@@ -83,15 +83,12 @@ class MarkGeometry:
 
     def with_width(self, width_px: float) -> "MarkGeometry":
         """The same geometry with the line width the measuring stage settled on."""
-        return MarkGeometry(self.arm_px, float(width_px), self.arm_spread_px,
-                            self.width_spread_px, self.n, self.source, self.blur_px,
-                            self.offset_px)
+        return replace(self, width_px=float(width_px))
 
     def with_arm(self, arm_px: float) -> "MarkGeometry":
         """The same geometry with the arm length the measuring stage settled on (``source``
         "fit": the least-squares fit of the best crosses chose it)."""
-        return MarkGeometry(float(arm_px), self.width_px, self.arm_spread_px,
-                            self.width_spread_px, self.n, "fit", self.blur_px, self.offset_px)
+        return replace(self, arm_px=float(arm_px), source="fit")
 
     def shape(self) -> MarkShape:
         """The cross template of this geometry (mark frame px)."""
