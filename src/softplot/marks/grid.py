@@ -424,7 +424,7 @@ def fit_grid(
         the film format's edge (``format_mm``, centred on the grid) in the image:
         ``frame_evidence(corners)`` with the format's corners (K, 4, 2) (pixel system, top-left,
         top-right, bottom-right, bottom-left) of each such shift returns (K,) figures in
-        [0, 1] (:func:`softplot.marks.detect._frame_evidence`).
+        [0, 1] (:func:`softplot.marks.lattice.frame_evidence`).
     max_rotation_deg : float
         Largest residual rotation accepted.
     scale_tol : float, optional
@@ -700,8 +700,11 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     # edge (a quarter pitch or less inside): the edge and the border give peaks, no cross
     held = sc.sum()
     if format_mm is not None:
-        ky = max(0, int(np.ceil(0.5 * format_mm[1] / reseau.pitch_y - 0.25 - (rows - 1) / 2)) - 1)
-        kx = max(0, int(np.ceil(0.5 * format_mm[0] / reseau.pitch_x - 0.25 - (cols - 1) / 2)) - 1)
+        # rows (columns) beyond the grid's last one still inside the format, a quarter
+        # pitch clear of its edge
+        kx, ky = (max(0, int(np.ceil(0.5 * fmt / pitch - 0.25 - (n - 1) / 2)) - 1)
+                  for fmt, pitch, n in ((format_mm[0], reseau.pitch_x, cols),
+                                        (format_mm[1], reseau.pitch_y, rows)))
         held = box_sums(S, -ky, rows + ky, -kx, cols + kx)
     total = on - (held - on) - 0.5 * mean_sc * unseen - 1e-6 * off
     # the same, forgiving crosses missed where none could be seen
