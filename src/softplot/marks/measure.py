@@ -19,7 +19,7 @@ from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import thread_map
 
-__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules"]
+__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma"]
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -203,6 +203,15 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     g = g.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     return np.ascontiguousarray(S), _prior_weights(g, nz, delta), g
+
+
+def peer_sigma(fine: Fine, least: int = 5) -> float | None:
+    """The accepted marks' median precision (px, :attr:`Fine.sigma`) of a :class:`Fine`, or
+    None with fewer than ``least`` accepted: the reference of refits' relative precision
+    test (:func:`measure`'s ``sigma_ref``)."""
+    if fine.ok.sum() < least:
+        return None
+    return float(np.median(fine.sigma[fine.ok]))
 
 
 def _grad_magnitude(img: np.ndarray) -> np.ndarray:
@@ -465,8 +474,10 @@ def _concat(results: list[LSMResult]) -> LSMResult:
     return LSMResult(**kw)
 
 
-def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
-    """Acceptance tests: (ok mask, reasons)."""
+def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
+    """Acceptance tests: (ok mask, reasons). ``sigma_ref`` (px): the scan's accepted marks'
+    median precision, the reference of the relative precision test where these marks are a
+    few refits (default: the median of those accepted here, when 5 or more)."""
     n = len(c0)
     reason = [""] * n
     ok = np.ones(n, bool)
@@ -497,8 +508,10 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift):
     sig = res.sigma
     fail(~np.isfinite(sig) | (sig > rules.max_sigma), "imprecise")
     # far less precise than its peers: partly hidden or on conflicting scene content
-    if ok.sum() >= 5:
-        fail(sig > rules.max_sigma_ratio * float(np.median(sig[ok])), "imprecise")
+    if sigma_ref is None and ok.sum() >= 5:
+        sigma_ref = float(np.median(sig[ok]))
+    if sigma_ref is not None:
+        fail(sig > rules.max_sigma_ratio * sigma_ref, "imprecise")
     s_med = float(np.median(res.s[ok])) if ok.any() else s0
     fail(res.s > 3.0 * s_med + 1.5, "too blurred")
     return ok, reason
@@ -528,16 +541,17 @@ def _take(res: LSMResult, k: np.ndarray) -> LSMResult:
                         for f in fields(LSMResult)})
 
 
-def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets):
+def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets, sigma_ref=None):
     """:func:`_accept` of each set of marks (``sets`` (N,) int) on its own."""
     vals = np.unique(sets)
     if len(vals) == 1:
-        return _accept(res, c0, A0, s0, sign, rules, anchor, max_shift)
+        return _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref)
     ok = np.zeros(len(c0), bool)
     why = [""] * len(c0)
     for v in vals:
         k = np.where(sets == v)[0]
-        o, w = _accept(_take(res, k), c0[k], A0[k], s0, sign, rules, anchor[k], max_shift)
+        o, w = _accept(_take(res, k), c0[k], A0[k], s0, sign, rules, anchor[k], max_shift,
+                       sigma_ref)
         ok[k] = o
         for j, i in enumerate(k):
             why[i] = w[j]
@@ -575,7 +589,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
             max_shift: float | None = None, chunk: int = 20,
             drop_part: int | None = None, scene_tv: int = 0, auto_tv: int = 0,
-            busy=None, blur: float | None = None) -> Fine:
+            busy=None, blur: float | None = None, sigma_ref: float | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
@@ -611,6 +625,12 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         scene's TV weight), batched into common fits where the blur is held (``blur``).
     blur : float, optional
         Hold the blur at this value (px) in every fit instead of estimating it.
+    sigma_ref : float, optional
+        The precision (px) of the scan's accepted marks (median): a fit more than
+        ``rules.max_sigma_ratio`` times less precise is refused ("imprecise"), also where
+        only a few marks are fitted (refits, retries; a fit 60 times less precise than its
+        peers had locked onto the scene 12 px away). Default: the median of the marks this
+        call accepts (when 5 or more); the retry uses the first pass's.
     scene_tv : int
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
@@ -692,7 +712,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
         good, why = _accept_sets(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
-                                 max_shift, sets[idx])
+                                 max_shift, sets[idx], sigma_ref)
         if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
@@ -711,7 +731,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
                                                      strict=True))))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
-                                max_shift)
+                                max_shift, sigma_ref)
         for j, i in enumerate(idx):
             if p_i == 0 or good[j]:
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
@@ -722,6 +742,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 retry.append(i)
         if p_i == 0 and retry:
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
+            if sigma_ref is None and good.sum() >= 5:  # the retry judged against the first
+                sigma_ref = float(np.median(res.sigma[good]))
             held = median_blur(res.s, good) if fit_blur else None
             if held is not None:
                 # the retry holds the accepted marks' median blur (a free blur let fits of

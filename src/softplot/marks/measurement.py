@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softplot.marks import grid
-from softplot.marks.measure import AcceptRules, Fine, measure, median_blur
+from softplot.marks.measure import AcceptRules, Fine, measure, median_blur, peer_sigma
 from softplot.marks.neighbours import local_prediction, position_affine
 from softplot.marks.prediction import Prediction
 from softplot.marks.scene import JOINT_PASSES, busy_scene
@@ -175,7 +175,7 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     weaker of the two (a 100 um deformation at 2400 dpi, low noise) only the marks the scene
     really pulled stand out. Modifies ``fine`` in place.
     """
-    cons, lev = position_affine(film, fine.xy, fine.ok, ppm)
+    cons, lev, near = position_affine(film, fine.xy, fine.ok, ppm, with_position=True)
     have = np.isfinite(cons).all((1, 2))
     fin = have & np.isfinite(fine.A).all((1, 2))
     ref = fin & fine.ok
@@ -190,10 +190,14 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     redo = np.where(have & (~fine.ok | (z > z_max)))[0]
     if redo.size == 0:
         return
-    start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
+    # a refused mark starts where its neighbours put it: its own start may have been a scene
+    # feature the lattice took for it (a prediction 8-13 px off, fits locked beside it)
+    start = np.where(fine.ok[redo, None], fine.xy[redo],
+                     np.where(np.isfinite(near[redo]), near[redo], c0[redo]))
     blur = held_blur(fine)
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
-                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur)
+                 max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur,
+                 sigma_ref=peer_sigma(fine))
     # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
     # the outlier test's leave-one-out prediction of its residual against a projective model
     both = fine.ok[redo] & f2.ok
@@ -241,7 +245,8 @@ def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_sh
         big = MarkShape("cross", length=shape.length * kk, width=shape.width * kk)
         start = np.where(np.isfinite(fine.xy[grp]).all(1, keepdims=True), fine.xy[grp], c0[grp])
         f2 = measure(sc, big, start, A0[grp], s0 * max(kk, 1.0), init_err, sign, rules,
-                     anchor=pred[grp], max_shift=max_shift, scene_tv=scene_tv)
+                     anchor=pred[grp], max_shift=max_shift, scene_tv=scene_tv,
+                     sigma_ref=peer_sigma(fine))
         for j, i in enumerate(grp):
             if f2.ok[j]:
                 fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]

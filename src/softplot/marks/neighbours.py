@@ -188,7 +188,7 @@ def outline(film, present=None):
     return out
 
 
-def position_affine(film, xy, ok, ppm, k=24):
+def position_affine(film, xy, ok, ppm, k=24, with_position=False):
     """Each mark's pixel -> mark-frame affine predicted from its neighbours' positions.
 
     The affine of a mark is the local Jacobian of the film mm -> pixel mapping (film
@@ -208,12 +208,16 @@ def position_affine(film, xy, ok, ppm, k=24):
     lev : (M,)
         Variance factor of each prediction's Jacobian for unit position noise (px^2 / mm^2):
         large where the neighbours lie to one side (corners, edges).
+    xy : (M, 2)
+        With ``with_position``: each mark's position (pixel system) predicted by the same
+        local polynomial (the mark itself left out).
     """
     good = np.where(ok & np.isfinite(xy).all(1))[0]
     M = len(film)
     if good.size < 4:
-        return np.full((M, 2, 2), np.nan), np.full(M, np.nan)
-    _, grad, lev = local_fit(film, film[good], xy[good], k, degree=3, gradient=True)
+        out = np.full((M, 2, 2), np.nan), np.full(M, np.nan)
+        return out + (np.full((M, 2), np.nan),) if with_position else out
+    pos, grad, lev = local_fit(film, film[good], xy[good], k, degree=3, gradient=True)
     J = grad @ np.diag([1.0 / ppm, -1.0 / ppm])
     # 2 x 2 inverses by hand: a degenerate neighbourhood (collinear marks: a Jacobian near
     # singular, |det| ~ 1 otherwise) gives NaN, not an exception
@@ -223,4 +227,4 @@ def position_affine(film, xy, ok, ppm, k=24):
     with np.errstate(all="ignore"):
         A = adj / det[:, None, None]
     A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < 1e-6)] = np.nan
-    return A, lev
+    return (A, lev, pos) if with_position else (A, lev)
