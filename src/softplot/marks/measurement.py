@@ -191,9 +191,17 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     if redo.size == 0:
         return
     # a refused mark starts where its neighbours put it: its own start may have been a scene
-    # feature the lattice took for it (a prediction 8-13 px off, fits locked beside it)
-    start = np.where(fine.ok[redo, None], fine.xy[redo],
-                     np.where(np.isfinite(near[redo]), near[redo], c0[redo]))
+    # feature the lattice took for it (a prediction 8-13 px off, fits locked beside it); so
+    # does an accepted one that lies far from there (a fit slid 5 px along an arm)
+    start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
+    d = np.hypot(*(fine.xy - near).T)
+    okd = fine.ok & np.isfinite(d)
+    if okd.sum() >= 4:
+        far = ~fine.ok | (d > max(3.0 * 1.4826 * float(np.median(d[okd])), 2.0 * init_err))
+    else:
+        far = ~fine.ok
+    use = far[redo] & np.isfinite(near[redo]).all(1)
+    start[use] = near[redo][use]
     blur = held_blur(fine)
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
                  max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur,
