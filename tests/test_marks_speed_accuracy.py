@@ -46,6 +46,23 @@ def test_scene_solve_blur_matches_numpy_at_every_radius(s_e):
         assert np.abs(B - scene_tv._blur_np(X, scene_tv.gauss_taps(s_e))).max() < 2e-6
 
 
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_scene_solve_matches_numpy_at_every_width():
+    """The compiled solve pads each row to a multiple of 8 columns: at every width modulo 8
+    (and the blur radii of 7 and 9 taps) the patch's own columns are those of the NumPy
+    path to float32 rounding, the scene's last column included."""
+    for w in range(24, 33):
+        g, T, B0, level, mu = _patches(n=2, h=21, w=w, seed=w)
+        T[:, :, w // 2 - 1 : w // 2 + 2] = 1.0
+        for s_e in (0.8, 1.2):
+            a = scene_tv.deconv_tv(g, T, level, B0, mu, s_e, 20, compiled=True)
+            b = scene_tv.deconv_tv(g, T, level, B0, mu, s_e, 20, compiled=False)
+            for x, y in zip(a, b, strict=True):
+                assert x.shape == (2, 21, w)
+                assert np.abs(x - y).max() < 2e-5, (w, s_e)
+                assert np.abs(x[..., -1] - y[..., -1]).max() < 2e-5, (w, s_e)
+
 def _errors(det, truth):
     tm = {m["name"]: m for m in truth["marks"]}
     return {nm: det.xy[i] - (tm[nm]["x"], tm[nm]["y"]) for i, nm in enumerate(det.name)

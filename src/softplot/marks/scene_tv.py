@@ -210,53 +210,67 @@ def _project(a, b, il):  # pragma: no cover - compiled
 
 @njit(fastmath=True, cache=True, nogil=True)
 def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover - compiled
+    # the patch's rows padded to a multiple of 8 columns (``wp``, plus a margin): the loops
+    # over whole rows then have no scalar remainder (they vectorise 8 or 16 wide); the pad
+    # columns repeat the last column of ``Xb`` and ``t1`` (what the blur's replicated edge and
+    # the zero forward difference across the far edge see), so the patch's own columns get
+    # the values of the unpadded loops
     n, h, w = g.shape
     r = (k.shape[0] - 1) // 2
+    wp = (w + 7) // 8 * 8
+    w1 = wp + 8
     one = np.float32(1.0)
     isg = one / (one + sig)
-    X = np.empty((h, w), np.float32)
-    Xb = np.empty((h, w), np.float32)
-    px = np.empty((h, w), np.float32)
-    py = np.empty((h, w), np.float32)
-    y2 = np.empty((h, w), np.float32)
-    t1 = np.empty((h, w), np.float32)
-    t2 = np.empty((h, w), np.float32)
-    tmp = np.empty((h, w), np.float32)
-    W = np.empty((h, w), np.float32)
-    f = np.empty((h, w), np.float32)
-    row = np.empty(w + 2 * max(r, 4), np.float32)
+    X = np.empty((h, w1), np.float32)
+    Xb = np.empty((h, w1), np.float32)
+    px = np.empty((h, w1), np.float32)
+    py = np.empty((h, w1), np.float32)
+    y2 = np.empty((h, w1), np.float32)
+    t1 = np.empty((h, w1), np.float32)
+    t2 = np.zeros((h, w1), np.float32)
+    tmp = np.zeros((h, w1), np.float32)
+    W = np.empty((h, w1), np.float32)
+    f = np.empty((h, w1), np.float32)
+    row = np.empty(w1 + 2 * max(r, 4), np.float32)
     for q in range(n):
         il = one / mu[q]
         for i in range(h):
             for j in range(w):
                 X[i, j] = B0[q, i, j]
                 Xb[i, j] = B0[q, i, j]
+                W[i, j] = one - T[q, i, j]
+                f[i, j] = sig * (g[q, i, j] - m[q] * T[q, i, j])
+            for j in range(w, w1):  # the pad: no data, the scene's last column repeated
+                X[i, j] = B0[q, i, w - 1]
+                Xb[i, j] = B0[q, i, w - 1]
+                W[i, j] = 0.0
+                f[i, j] = 0.0
+            for j in range(w1):
                 px[i, j] = 0.0
                 py[i, j] = 0.0
                 y2[i, j] = 0.0
-                W[i, j] = one - T[q, i, j]
-                f[i, j] = sig * (g[q, i, j] - m[q] * T[q, i, j])
+                t1[i, j] = 0.0
         for _ in range(iters):
             # dual step of the TV term: ascent on grad X (forward differences, 0 across the
-            # far edges), projection onto |p| <= mu
+            # far edges: the pad repeats the last column), projection onto |p| <= mu
             for i in range(h - 1):
-                for j in range(w - 1):
+                for j in range(wp):
                     px[i, j], py[i, j] = _project(px[i, j] + sig * (Xb[i, j + 1] - Xb[i, j]),
                                                   py[i, j] + sig * (Xb[i + 1, j] - Xb[i, j]),
                                                   il)
-                px[i, w - 1], py[i, w - 1] = _project(
-                    px[i, w - 1], py[i, w - 1] + sig * (Xb[i + 1, w - 1] - Xb[i, w - 1]), il)
-            for j in range(w - 1):
+            for j in range(wp):
                 px[h - 1, j], py[h - 1, j] = _project(
                     px[h - 1, j] + sig * (Xb[h - 1, j + 1] - Xb[h - 1, j]), py[h - 1, j], il)
-            px[h - 1, w - 1], py[h - 1, w - 1] = _project(px[h - 1, w - 1], py[h - 1, w - 1], il)
             # dual step of the data term (prox of the conjugate of 1/2 |z - f|^2)
-            _blur(Xb, t2, tmp, row, k, r, h, w)
+            _blur(Xb, t2, tmp, row, k, r, h, wp)
             for i in range(h):
-                for j in range(w):
+                for j in range(wp):
                     y2[i, j] = (y2[i, j] + sig * W[i, j] * t2[i, j] - f[i, j]) * isg
                     t1[i, j] = W[i, j] * y2[i, j]
-            _blur(t1, t2, tmp, row, k, r, h, w)
+                e = t1[i, w - 1]
+                for j in range(w, wp):
+                    t1[i, j] = e
+            _blur(t1, t2, tmp, row, k, r, h, wp)
             # primal step: X - tau K^T y = X + tau (div p - G (W y2)), then extrapolation
             # (px on the last column and py on the last row stay 0: added without a branch,
             # the inner loop vectorises)
@@ -279,6 +293,9 @@ def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover
                         xn = X[i, j] + tau * d
                         Xb[i, j] = np.float32(2.0) * xn - X[i, j]
                         X[i, j] = xn
+                e = Xb[i, w - 1]
+                for j in range(w, wp + 1):
+                    Xb[i, j] = e
         _blur(X, t2, tmp, row, k, r, h, w)
         for i in range(h):
             for j in range(w):
