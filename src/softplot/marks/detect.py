@@ -255,14 +255,16 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
 
 
 def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous) -> list[str]:
-    """Refuse what is not a reseau (too few crosses measured, or not on a grid); the
-    warnings of one that is."""
+    """Refuse what is not a reseau (no cross measured, or not on a grid); the warnings of
+    one that is."""
     res = cam.reseau
     N, n_in = res.count, len(m.fitted)
     n_meas = sum(s == "measured" for s in m.status)
-    if n_meas < min(4, res.count):
-        # a lattice of candidates was found, but the crosses do not hold up at full
-        # resolution (scene texture, the wrong polarity or the wrong camera)
+    if n_meas == 0:
+        # a lattice of candidates was found, but no cross holds up at full resolution (scene
+        # texture, the wrong polarity or the wrong camera); crosses that do are never thrown
+        # away for being few: the lattice of at least MIN_PART candidates is the grid they
+        # lie on, and they are returned with a warning
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
