@@ -108,3 +108,26 @@ def test_a_photograph_without_a_reseau_is_refused(camera, scene, seed, dpi):
     with pytest.raises(DetectionError, match="no reseau found") as exc:
         detect(Scan.from_array(img, dpi=dpi), camera)
     assert "\n" not in str(exc.value)
+
+
+def test_a_format_edge_half_hidden_by_dark_rows_still_names_the_grid():
+    """The film's left edge (at x = 40 overview px) shows over 42 % of its length; a band of
+    flat dark rows, as dark as the border, hides the rest. The naming that puts the format's
+    left edge there must outscore the one a pitch further left (its left edge outside the
+    scan, its other edges on the same steps): the median step along the whole edge is the
+    dark band's (none), so the edge is read where the film inside it could show."""
+    from softplot.marks.lattice import frame_evidence
+
+    rng = np.random.default_rng(3)
+    H, W = 300, 400
+    g = np.full((H, W), 0.05, np.float32)  # unexposed border (a positive: dark)
+    g[30:271, 40:] = 0.6 + 0.1 * rng.standard_normal((241, W - 40))  # film, textured
+    g[80:221, :] = 0.05  # dark rows over the film's middle, left edge included
+    g += 0.01 * rng.standard_normal(g.shape).astype(np.float32)
+    xs = np.arange(80, 400, 40.0)
+    found = np.array([(x, y) for x in xs for y in (50.0, 250.0)])  # crosses on the film
+    truth = np.array([[40, 30], [500, 30], [500, 270], [40, 270]], float)
+    left = truth - [40.0, 0.0]  # a pitch (4 mm at 10 px/mm) further left
+    ev = frame_evidence(g, 1, 10.0, 4.0)(np.stack([truth, left]), found)
+    # the true left edge's step (0.55 over a grey range of about 0.6) less FRAME_STEP, over 4
+    assert ev[0] > ev[1] + 0.1

@@ -422,9 +422,10 @@ def fit_grid(
     frame_evidence, format_mm : callable and (width, height), optional
         Where several index shifts fit the crosses alike (a part of the grid), the evidence of
         the film format's edge (``format_mm``, centred on the grid) in the image:
-        ``frame_evidence(corners)`` with the format's corners (K, 4, 2) (pixel system, top-left,
-        top-right, bottom-right, bottom-left) of each such shift returns (K,) figures in
-        [0, 1] (:func:`softplot.marks.lattice.frame_evidence`).
+        ``frame_evidence(corners, found)`` with the format's corners (K, 4, 2) (pixel system,
+        top-left, top-right, bottom-right, bottom-left) of each such shift and the lattice's crosses
+        ``found`` (n, 2) (pixel system) returns (K,) figures in [0, 1]
+        (:func:`softplot.marks.lattice.frame_evidence`).
     max_rotation_deg : float
         Largest residual rotation accepted.
     scale_tol : float, optional
@@ -715,7 +716,8 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
         near = np.argwhere((total >= total.max() - EDGE_REACH * mean_sc)
                            | (lenient >= lenient.max() - EDGE_REACH * mean_sc))
         if len(near) > 1:
-            ev = _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau, format_mm)
+            ev = _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau, format_mm,
+                             p0 + lat.idx[cand] @ Bc.T)
             total[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
             lenient[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
     # crosses missed where none could be seen are no evidence against a shift
@@ -744,10 +746,10 @@ def _evidence(score, cand):
     return sc
 
 
-def _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau: Reseau, format_mm):
+def _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau: Reseau, format_mm, found):
     """The format's edge evidence of the shifts ``near`` (K, 2) (relative indices of row 0,
     col 0 less (j_lo, i_lo)), in steps of 0.05 (what differs less is noise, and the scan's
-    centre decides): (K,) float."""
+    centre decides): (K,) float. ``found`` (n, 2): the lattice's crosses (pixel system)."""
     rows, cols = reseau.rows, reseau.cols
     fx = np.array([-1, 1, 1, -1]) * 0.5 * format_mm[0] / reseau.pitch_x + (cols - 1) / 2
     fy = (rows - 1) / 2 - np.array([1, 1, -1, -1]) * 0.5 * format_mm[1] / reseau.pitch_y
@@ -755,7 +757,8 @@ def _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau: Reseau, format
     b = near[:, 1][:, None] + i_lo + fx[None, :]
     corners = np.stack([p0[0] + Bc[0, 0] * b + Bc[0, 1] * a,
                         p0[1] + Bc[1, 0] * b + Bc[1, 1] * a], -1)
-    return np.round(np.nan_to_num(np.asarray(frame_evidence(corners), float)) / 0.05)
+    ev = frame_evidence(corners, found)
+    return np.round(np.nan_to_num(np.asarray(ev, float)) / 0.05)
 
 
 def projective_model(xy, score, reseau: Reseau, ident: Identification, px_per_mm: float,

@@ -32,6 +32,9 @@ __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evi
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
 FRAME_STEP = 0.25
+#: the fraction of a format edge where the film inside must show for the edge's step to be
+#: read there only (:func:`frame_evidence`)
+EDGE_SHOWN = 0.3
 #: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
 #: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
 SCALE_TOL = 0.03
@@ -72,7 +75,7 @@ class Lattice:
         return coarse.ov_to_full(self.peaks.xy[self.grid.index], self.factor)
 
 
-def frame_evidence(ov, f: int, ppm: float):
+def frame_evidence(ov, f: int, ppm: float, pitch_mm: float | None = None):
     """The evidence of a film format's edge in the overview, for :func:`grid.fit_grid`.
 
     ``ov`` the overview (overview pixel system, reduction ``f``), ``ppm`` full-resolution px
@@ -83,7 +86,11 @@ def frame_evidence(ov, f: int, ppm: float):
     most 1: near 1 for the unexposed border of a film, small for scene content) less
     :data:`FRAME_STEP`,
     over 4: a shift that puts more of the format's edges on real steps wins, one that puts an
-    edge on scene content loses. Edges outside the scan are left out.
+    edge on scene content loses. Edges outside the scan are left out. Given the crosses a
+    lattice found (``found`` (n, 2), full-resolution pixel system), the median is taken over
+    the places where the film inside the edge could show (grey inside like around the
+    crosses, as :func:`seeable` judges) when they are at least :data:`EDGE_SHOWN` of the
+    edge: a flat dark region over part of the film (dark rows) hides the edge there.
     """
     g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
     Hh, W = g.shape
@@ -113,8 +120,14 @@ def frame_evidence(ov, f: int, ppm: float):
                 t1 = np.where((pk == 0) & (qk < 0), -1.0, t1)
         return t0, t1
 
-    def evidence(corners):
+    level = _level(g, f, max(1.0, 0.1 * pitch_mm * ppm / f) if pitch_mm else 1.0)
+
+    def evidence(corners, found=None):
         corners = np.asarray(corners, float).reshape(-1, 4, 2)
+        band = None
+        if found is not None and len(found):
+            b_lo, b_hi = np.percentile(level(found), [10, 90])
+            band = (b_lo - 0.3 * rng, b_hi + 0.3 * rng)
         c = corners.mean(1)  # (K, 2)
         total = np.zeros(len(corners))
         for e in range(4):  # every shift at once, edge by edge
@@ -135,7 +148,13 @@ def frame_evidence(ov, f: int, ppm: float):
             # each edge counts at most a full step: on a scan whose grey range is mostly
             # the film's (a low-contrast frame, little border) one edge on the border would
             # otherwise outweigh every other edge, and every shift would score alike
-            step = np.minimum(np.abs(np.median(gi - go, 1)) / rng, 1.0)
+            diff = gi - go
+            if band is not None:
+                # where the film inside could show the edge, when that is enough of it
+                film = (gi >= band[0]) & (gi <= band[1])
+                part = film.mean(1) >= EDGE_SHOWN
+                diff = np.where(part[:, None] & ~film, np.nan, diff)
+            step = np.minimum(np.abs(np.nanmedian(diff, 1)) / rng, 1.0)
             total[use] += step - FRAME_STEP
         return np.clip(total / 4.0, -1.0, 1.0)
 
@@ -159,14 +178,7 @@ def seeable(ov, f: int, ppm: float, pitch_mm: float):
     sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
     lo, hi = np.percentile(sub, [5, 95])
     rng = max(float(hi - lo), 1e-6)
-    r = max(1.0, 0.1 * pitch_mm * ppm / f)
-    off = np.linspace(-r, r, 7)
-
-    def level(xy):
-        p = coarse.full_to_ov(np.asarray(xy, float).reshape(-1, 2), f)
-        x = np.clip(np.round(p[:, 0, None, None] + off[None, None, :]), 0, W - 1).astype(int)
-        y = np.clip(np.round(p[:, 1, None, None] + off[None, :, None]), 0, Hh - 1).astype(int)
-        return np.median(g[y, x].reshape(len(p), -1), axis=1)
+    level = _level(g, f, max(1.0, 0.1 * pitch_mm * ppm / f))
 
     def show(xy, found_xy):
         ref = level(found_xy)
@@ -175,6 +187,21 @@ def seeable(ov, f: int, ppm: float, pitch_mm: float):
         return (b >= b_lo - 0.3 * rng) & (b <= b_hi + 0.3 * rng)
 
     return show
+
+
+def _level(g, f: int, r: float):
+    """The grey around positions (K, 2) (full-resolution pixel system) in the overview ``g``
+    (reduction ``f``): the median of 7 x 7 samples over +-``r`` overview px, (K,)."""
+    Hh, W = g.shape
+    off = np.linspace(-r, r, 7)
+
+    def level(xy):
+        p = coarse.full_to_ov(np.asarray(xy, float).reshape(-1, 2), f)
+        x = np.clip(np.round(p[:, 0, None, None] + off[None, None, :]), 0, W - 1).astype(int)
+        y = np.clip(np.round(p[:, 1, None, None] + off[None, :, None]), 0, Hh - 1).astype(int)
+        return np.median(g[y, x].reshape(len(p), -1), axis=1)
+
+    return level
 
 
 def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: str,
@@ -188,7 +215,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     """
     res = camera.reseau
     f, px_per_mm = ov.factor, ov.px_per_mm
-    show = seeable(ov.image, f, px_per_mm, min(res.pitch_x, res.pitch_y))
+    pmin = min(res.pitch_x, res.pitch_y)
+    show = seeable(ov.image, f, px_per_mm, pmin)
     # fit the polarity that can score most first; another one only if it could still win
     fits = {}
     for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
@@ -202,7 +230,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
         fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
                                  px_per_mm=px_per_mm, rotate_deg=rotate_deg,
                                  margin_px=max(0.5 * cands.template.length, cands.half) * f,
-                                 frame_evidence=frame_evidence(ov.image, f, px_per_mm),
+                                 frame_evidence=frame_evidence(ov.image, f, px_per_mm, pmin),
                                  format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
                                  seeable=show)
     best = None
@@ -224,6 +252,7 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
         return lat
     res = camera.reseau
     f, ppm = ov.factor, ov.px_per_mm
+    pmin = min(res.pitch_x, res.pitch_y)
     shape = cross_shape(camera, ppm)
     J = grid.h_jacobian(g.H, res.film()[g.node].mean(0))[0] / ppm  # where the crosses are
     A_ov = np.linalg.inv(J @ np.diag([1.0, -1.0]))
@@ -242,9 +271,9 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
     g2 = grid.fit_grid(coarse.ov_to_full(pk2.xy, f), pk2.score, res,
                        (scan.width, scan.height), px_per_mm=ppm, rotate_deg=g.rotation_deg,
                        margin_px=max(0.5 * shape.length, h2 * f), max_rotation_deg=3.0,
-                       frame_evidence=frame_evidence(ov.image, f, ppm),
+                       frame_evidence=frame_evidence(ov.image, f, ppm, pmin),
                        format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
-                       seeable=seeable(ov.image, f, ppm, min(res.pitch_x, res.pitch_y)))
+                       seeable=seeable(ov.image, f, ppm, pmin))
     if g2 is not None and len(g2.node) >= len(g.node):
         return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f)
     return lat
