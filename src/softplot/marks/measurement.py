@@ -203,7 +203,10 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     use = far[redo] & np.isfinite(near[redo]).all(1)
     start[use] = near[redo][use]
     blur = held_blur(fine)
-    f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=pred[redo],
+    # started from the neighbours' position, the retry starts there too (the prediction's
+    # start had been refused)
+    anchor = np.where(use[:, None], start, pred[redo])
+    f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=anchor,
                  max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur,
                  sigma_ref=peer_sigma(fine))
     # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
