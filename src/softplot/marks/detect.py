@@ -76,6 +76,9 @@ __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_gri
 #: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
 #: a part of 3 x 3 crosses with a few missing still passes
 MIN_PART = 6
+#: ... unless it has at least this many and reaches the grid's first and last row and column
+#: (no other naming is possible), and at least this many crosses are then measured
+MIN_SPANNING = 4
 
 
 def detect(
@@ -184,6 +187,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     timings["overview"] = time.perf_counter() - t0
     lat = _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi)
     timings["grid"] = time.perf_counter() - t0
+    # a lattice of fewer than MIN_PART candidates is a reseau once MIN_SPANNING crosses hold
+    min_measured = MIN_SPANNING if len(lat.grid.node) < min(MIN_PART, res.count) else 1
     pr = predict(lat, res.film(), ppm, blur_px)
     ambiguous = lat.grid.ambiguous
     del ov, lat  # the overview and the NCC map are not needed any more: free them
@@ -198,7 +203,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     m = measure_crosses(sc, shape, pr, inside, on_img, rules, scene)
     timings["lsm"] = time.perf_counter() - t0
     v = validate(sc, pr, m, rules)
-    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous)
+    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured)
     timings["total"] = time.perf_counter() - t0
     return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
                              warnings, timings, ambiguous)
@@ -225,7 +230,8 @@ def _check_size(sc, cam, dpi, name) -> None:
 
 def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lattice:
     """Candidates and lattice (stages 2 and 3); no lattice, or one of fewer than
-    :data:`MIN_PART` crosses, is a :class:`DetectionError`."""
+    :data:`MIN_PART` crosses that does not span the grid (:func:`_spans_grid`), is a
+    :class:`DetectionError`."""
     res = cam.reseau
     ppm = dpi / MM_PER_INCH
     cands = reseau_candidates(sc, ov, cam, polarity, blur_px)
@@ -247,24 +253,37 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
             f"its {res.pitch_x}x{res.pitch_y} mm nodes (a pitch of about {px:g}x{py:g} mm); "
             f"is {cam.name} the scan's camera?")
     n_assigned = len(lat.grid.node)
-    if n_assigned < min(MIN_PART, res.count):
+    if n_assigned < min(MIN_PART, res.count) and not _spans_grid(lat.grid.node, res):
         raise DetectionError(
             f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm, found only {n_assigned} on a lattice")
     return lat
 
 
-def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous) -> list[str]:
-    """Refuse what is not a reseau (no cross measured, or not on a grid); the warnings of
-    one that is."""
+def _spans_grid(node, res) -> bool:
+    """Do the lattice's crosses ``node`` (indices, row-major) reach the first and last row
+    and column of the certificate's grid, :data:`MIN_SPANNING` of them at least? A small
+    grid over a busy scene shows a few of its crosses among the candidates, but placed so
+    that the grid can be named only one way."""
+    node = np.asarray(node, int)
+    r, c = node // res.cols, node % res.cols
+    return bool(len(node) >= MIN_SPANNING and r.min() == 0 and r.max() == res.rows - 1
+                and c.min() == 0 and c.max() == res.cols - 1)
+
+
+def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous,
+           min_measured=1) -> list[str]:
+    """Refuse what is not a reseau (fewer than ``min_measured`` crosses measured, at least
+    one, or not on a grid); the warnings of one that is."""
     res = cam.reseau
     N, n_in = res.count, len(m.fitted)
     n_meas = sum(s == "measured" for s in m.status)
-    if n_meas == 0:
+    if n_meas < max(1, min_measured):
         # a lattice of candidates was found, but no cross holds up at full resolution (scene
         # texture, the wrong polarity or the wrong camera); crosses that do are never thrown
-        # away for being few: the lattice of at least MIN_PART candidates is the grid they
-        # lie on, and they are returned with a warning
+        # away for being few: the lattice of at least MIN_PART candidates (or one spanning
+        # the grid, MIN_SPANNING crosses measured) is the grid they lie on, and they are
+        # returned with a warning
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
