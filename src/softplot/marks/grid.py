@@ -627,9 +627,9 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
 
 #: the format's edge evidence per step of :func:`_edge_steps`, in units of the mean evidence
 #: of a cross
-EDGE_WEIGHT = 0.5
+EDGE_WEIGHT = 1.0
 #: shifts scoring within this many crosses' evidence of the best are weighed by the edges
-EDGE_REACH = 2.0
+EDGE_REACH = 4.0
 
 
 def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,

@@ -35,6 +35,9 @@ FRAME_STEP = 0.25
 #: the fraction of a format edge where the film inside must show for the edge's step to be
 #: read there only (:func:`frame_evidence`)
 EDGE_SHOWN = 0.3
+#: a fit of fewer crosses is never a reseau (detection needs at least as many): it does
+#: not stop the other polarity from being fitted, and loses to a fit of as many
+MIN_FIT = 4
 #: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
 #: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
 SCALE_TOL = 0.03
@@ -211,7 +214,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
 
     ``rotate_deg``: the pixel-system angle of film +x expected (degrees); ``part``: the part
     of the grid the scan shows when the user gives it ((col0, col1, row0, row1) or None).
-    A sign whose :attr:`Candidates.bound` cannot beat a fit already made is not fitted.
+    A sign whose :attr:`Candidates.bound` cannot beat a fit already made (of at least
+    :data:`MIN_FIT` crosses) is not fitted; a fit of fewer crosses loses to one of as many.
     """
     res = camera.reseau
     f, px_per_mm = ov.factor, ov.px_per_mm
@@ -221,7 +225,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     fits = {}
     for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
         pk, bound = cands.peaks[sg], cands.bound[sg]
-        done = [g.score for g in fits.values() if g is not None]
+        # a fit of too few crosses to be a reseau (junk of the other polarity) prunes none
+        done = [g.score for g in fits.values() if g is not None and len(g.node) >= MIN_FIT]
         if done and bound < max(done):
             continue
         xy = coarse.ov_to_full(pk.xy, f)
@@ -236,7 +241,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     best = None
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
         g = fits.get(sg)
-        if g is not None and (best is None or g.score > best.grid.score):
+        if g is not None and (best is None or (len(g.node) >= MIN_FIT, g.score)
+                              > (len(best.grid.node) >= MIN_FIT, best.grid.score)):
             best = Lattice(grid=g, sign=sg, peaks=cands.peaks[sg], ncc=cands.ncc,
                            half=cands.half, factor=f)
     return best
