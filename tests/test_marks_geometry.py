@@ -141,3 +141,34 @@ def test_arm_length_of_thin_lines_under_a_wide_blur(cam, dpi, blur, arm, width):
     assert g["arm_length_mm"] == pytest.approx(true_arm, rel=0.12)
     err, wrong, missed, claimed = _errors(det, truth)
     assert wrong == 0 and claimed == 0 and missed == 0
+
+
+def test_bar_fits_in_one_batch_equal_each_bar_fitted_alone():
+    """The bars' profiles are fitted in one batch (each its own damping and stop): the same
+    values as fitting each profile alone, and the true ends and width recovered (blurred
+    boxes of known arm, width and blur, with noise; a flat profile has no bar)."""
+    from softplot.marks.geometry import _box, _fit_across, _fit_along
+
+    rng = np.random.default_rng(5)
+    u = np.arange(-60.0, 60.0 + 1e-9, 0.5)
+    v = np.arange(-9.0, 9.0 + 1e-9, 0.5)
+    arms = np.array([30.0, 34.0, 38.0, 42.0, 46.0])
+    blurs = np.array([0.8, 1.0, 1.3, 1.6, 2.0])
+    widths = np.array([1.5, 2.0, 2.5, 3.0, 3.5])
+    along = [_box(u, 0.1, 1.0, -0.5 * a + 0.7, 0.5 * a + 0.7, s) + rng.normal(0, 0.03, u.size)
+             for a, s in zip(arms, blurs, strict=True)]
+    along.append(rng.normal(0, 0.03, u.size))  # no bar
+    across = [_box(v, 0.1, 1.0, -0.5 * w - 0.3, 0.5 * w - 0.3, 1.0)
+              + rng.normal(0, 0.02, v.size) for w in widths]
+    batch = _fit_along(u, along, 10.0, 40.0, centre=4.0, s0=1.0, width=2.0)
+    alone = [_fit_along(u, p, 10.0, 40.0, centre=4.0, s0=1.0, width=2.0)[0] for p in along]
+    assert batch[-1] is None and alone[-1] is None
+    for fb, fa, a, s in zip(batch[:-1], alone[:-1], arms, blurs, strict=True):
+        np.testing.assert_allclose(fb, fa, rtol=0, atol=1e-9)
+        assert fb[1] - fb[0] == pytest.approx(a, abs=0.3)
+        assert 0.5 * (fb[0] + fb[1]) == pytest.approx(0.7, abs=0.15)
+        assert fb[2] == pytest.approx(s, rel=0.15)
+    batch = _fit_across(v, across, 1.0, 2.0)
+    for q, fb, w in zip(across, batch, widths, strict=True):
+        np.testing.assert_allclose(fb, _fit_across(v, q, 1.0, 2.0)[0], rtol=0, atol=1e-9)
+        assert fb[0] == pytest.approx(w, abs=0.4) and fb[1] == pytest.approx(-0.3, abs=0.1)

@@ -120,53 +120,82 @@ def _box(x, b, c, a1, a2, s):
 
 
 def _box_jac(x, b, c, a1, a2, s):
-    """Model and derivatives by (b, c, a1, a2, s): (n,) and (n, 5)."""
+    """Model and derivatives by (b, c, a1, a2, s): (..., n) and (..., n, 5), the parameters
+    broadcast against the samples ``x`` (e.g. (K, 1) each for K profiles)."""
     z1, z2 = (x - a1) / s, (x - a2) / s
     P = ndtr(z1) - ndtr(z2)
     g1 = np.exp(-0.5 * z1 * z1) / np.sqrt(2.0 * np.pi)
     g2 = np.exp(-0.5 * z2 * z2) / np.sqrt(2.0 * np.pi)
-    J = np.stack([np.ones_like(x), P, -c * g1 / s, c * g2 / s,
-                  -c * (z1 * g1 - z2 * g2) / s], 1)
+    J = np.stack(np.broadcast_arrays(1.0, P, -c * g1 / s, c * g2 / s,
+                                     -c * (z1 * g1 - z2 * g2) / s), -1)
     return b + c * P, J
 
 
 def _lm(resid_jac, p, lo, hi, iterations=30):
-    """Levenberg-Marquardt with box bounds (clipped steps) on a small problem: the parameters
-    or None when the fit does not converge to finite values."""
-    p = np.asarray(p, float)
-    r, J = resid_jac(p)
-    cost = float(r @ r)
-    lam = 1e-3
+    """Levenberg-Marquardt with box bounds (clipped steps) on K small problems at once, each
+    fitted as it would be alone (its own damping, its own stop).
+
+    ``p`` (K, n) starting values, ``lo``, ``hi`` bounds (broadcast to (K, n));
+    ``resid_jac(q, k)`` the residuals (len(k), m) and Jacobians (len(k), m, n) of the problems
+    ``k`` (indices into K) at the parameters ``q`` (len(k), n). Returns (K, n): the
+    parameters, a row of NaN where a fit does not converge to finite values."""
+    p = np.array(p, float)
+    K, n = p.shape
+    lo, hi = np.broadcast_to(lo, p.shape), np.broadcast_to(hi, p.shape)
+    r, J = resid_jac(p, np.arange(K))
+    cost = np.einsum("km,km->k", r, r)
+    lam = np.full(K, 1e-3)
+    active = np.ones(K, bool)
+    failed = np.zeros(K, bool)
+    diag = np.arange(n)
     for _ in range(iterations):
-        N = J.T @ J
-        g = J.T @ r
-        D = np.diag(np.diag(N)) + 1e-12 * np.eye(len(p))
-        try:
-            step = np.linalg.solve(N + lam * D, -g)
-        except np.linalg.LinAlgError:
-            return None
-        q = np.clip(p + step, lo, hi)
-        r2, J2 = resid_jac(q)
-        c2 = float(r2 @ r2)
-        if np.isfinite(c2) and c2 < cost:
-            done = cost - c2 < 1e-10 * cost
-            p, r, J, cost, lam = q, r2, J2, c2, lam * 0.3
-            if done:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e8:
-                break
-    return p if np.isfinite(p).all() else None
+        a = np.where(active)[0]
+        if a.size == 0:
+            break
+        Jt = J[a].transpose(0, 2, 1)
+        M = Jt @ J[a]
+        g = (Jt @ r[a][..., None])[..., 0]
+        M[:, diag, diag] += lam[a, None] * (M[:, diag, diag] + 1e-12)
+        step, bad = _solve(M, -g)
+        failed[a[bad]] = True
+        active[a[bad]] = False
+        a, step = a[~bad], step[~bad]
+        q = np.clip(p[a] + step, lo[a], hi[a])
+        r2, J2 = resid_jac(q, a)
+        c2 = np.einsum("km,km->k", r2, r2)
+        ok = np.isfinite(c2) & (c2 < cost[a])
+        done = ok & (cost[a] - c2 < 1e-10 * cost[a])
+        k = a[ok]
+        p[k], r[k], J[k], cost[k] = q[ok], r2[ok], J2[ok], c2[ok]
+        lam[k] *= 0.3
+        k = a[~ok]
+        lam[k] *= 10.0
+        active[a[done]] = False
+        active[k[lam[k] > 1e8]] = False
+    p[failed | ~np.isfinite(p).all(1)] = np.nan
+    return p
 
 
-def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float = 0.0,
-               s0: float = 1.0, width: float = 1.0):
-    """Blurred box along a bar: (a1, a2, s, c) or None. Where the bars cross, a thin
-    blurred line is darker than along its arms (the other bar's blur adds): the model adds
-    the other bar's cross-section (a line of ``width`` px, blurred alike) with a free level,
-    and the arm's starting level is read beyond ``centre`` px of the middle. ``s0``: the
-    starting blur (px)."""
+def _solve(M, b):
+    """``M x = b`` for a stack of systems (K, n, n), (K, n): ``x`` and whether each ``M`` is
+    singular (its row of ``x`` NaN)."""
+    singular = np.zeros(len(b), bool)
+    try:
+        return np.linalg.solve(M, b[..., None])[..., 0], singular
+    except np.linalg.LinAlgError:
+        out = np.full(b.shape, np.nan)
+        for k in range(len(b)):
+            try:
+                out[k] = np.linalg.solve(M[k], b[k])
+            except np.linalg.LinAlgError:
+                singular[k] = True
+        return out, singular
+
+
+def _along_start(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float):
+    """Starting level, contrast and ends ``(b0, c0, a1, a2)`` of the blurred box along a bar
+    (profile ``p`` sampled at ``u``, mark frame px), or None where the profile shows no bar
+    of an admissible length (``lo``, ``hi`` its least and greatest half length)."""
     du = float(u[1] - u[0])
     ps = uniform_filter1d(p, max(1, int(round(1.0 / du))))
     b0 = float(np.median(np.concatenate([ps[: len(ps) // 8], ps[-len(ps) // 8:]])))
@@ -192,55 +221,88 @@ def _fit_along(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: float
     a1, a2 = float(u[left]), float(u[r])
     if a2 - a1 < 2.0 * lo * 0.8 or a2 - a1 > 2.0 * hi:
         return None
+    return b0, c0, a1, a2
+
+
+def _fit_along(u: np.ndarray, profiles, lo: float, hi: float, centre: float = 0.0,
+               s0: float = 1.0, width: float = 1.0) -> list:
+    """Blurred box along each bar (``profiles`` (K, len(u)), sampled at ``u``, mark frame
+    px), fitted in one batch: per profile (a1, a2, s, c) or None. Where the bars cross, a
+    thin blurred line is darker than along its arms (the other bar's blur adds): the model
+    adds the other bar's cross-section (a line of ``width`` px, blurred alike) with a free
+    level, and the arm's starting level is read beyond ``centre`` px of the middle. ``s0``:
+    the starting blur (px)."""
+    profiles = np.asarray(profiles, float).reshape(-1, len(u))
+    starts = [_along_start(u, p, lo, hi, centre) for p in profiles]
+    k_ok = np.array([i for i, st in enumerate(starts) if st is not None], int)
+    out: list = [None] * len(profiles)
+    if k_ok.size == 0:
+        return out
     h = 0.5 * max(width, 0.05)
     # the crossing's excess over the arm, per unit arm level, is 1 / P0 - 1 (P0: a line's
     # blurred peak over its full level); at most that of a line half as wide as ``width``
     # at the starting blur
     s_i = float(np.clip(s0, 0.3, 10.0))
     k_max = 1.0 / max(float(erf(0.5 * h / (s_i * np.sqrt(2.0)))), 1e-3) - 1.0
+    data = profiles[k_ok]
 
-    def rj(q):
-        f, J = _box_jac(u, *q[:5])
+    def rj(q, k):
+        qc = q[:, :, None]  # (k, 6, 1): each parameter against the samples
+        f, J = _box_jac(u, *np.moveaxis(qc[:, :5], 1, 0))
         # the other bar where it crosses: its cross-section, blurred alike, at k x the level
-        zp, zm = (u + h) / q[4], (u - h) / q[4]
+        zp, zm = (u + h) / qc[:, 4], (u - h) / qc[:, 4]
         L = ndtr(zp) - ndtr(zm)
         gp = np.exp(-0.5 * zp * zp) / np.sqrt(2.0 * np.pi)
         gm = np.exp(-0.5 * zm * zm) / np.sqrt(2.0 * np.pi)
-        J = np.concatenate([J, (q[1] * L)[:, None]], 1)
-        J[:, 1] += q[5] * L
-        J[:, 4] += -q[1] * q[5] * (zp * gp - zm * gm) / q[4]
-        return f + q[1] * q[5] * L - p, J
+        J = np.concatenate([J, (qc[:, 1] * L)[..., None]], -1)
+        J[..., 1] += qc[:, 5] * L
+        J[..., 4] += -qc[:, 1] * qc[:, 5] * (zp * gp - zm * gm) / qc[:, 4]
+        return f + qc[:, 1] * qc[:, 5] * L - data[k], J
 
-    q = _lm(rj, [b0, c0, a1, a2, s_i, 0.0],
-            [-np.inf, 0.0, u[0], 0.0, 0.3, 0.0], [np.inf, np.inf, 0.0, u[-1], 10.0, k_max])
-    if q is None:
-        return None
-    b, c, a1, a2, s, _ = q
-    return a1, a2, s, c
+    p0 = [[b0, c0, a1, a2, s_i, 0.0] for b0, c0, a1, a2 in (starts[i] for i in k_ok)]
+    q = _lm(rj, p0, [-np.inf, 0.0, u[0], 0.0, 0.3, 0.0],
+            [np.inf, np.inf, 0.0, u[-1], 10.0, k_max])
+    for i, qi in zip(k_ok, q, strict=True):
+        if np.isfinite(qi).all():
+            b, c, a1, a2, s, _ = qi
+            out[i] = (a1, a2, s, c)
+    return out
 
 
-def _fit_across(v: np.ndarray, q: np.ndarray, s: float, w0: float):
-    """Box of width w blurred by ``s`` across a bar: (w, centre, c) or None."""
-    b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
-    j = int(np.argmax(q))
-    c0 = float(q[j] - b0)
-    if not c0 > 0:
-        return None
-    area = float(np.sum(q - b0) * (v[1] - v[0]))
-    w_init = float(np.clip(area / c0, 0.3 * w0, 4.0 * w0))
+def _fit_across(v: np.ndarray, profiles, s: float, w0: float) -> list:
+    """Box of width w blurred by ``s`` across each bar (``profiles`` (K, len(v)), sampled
+    at ``v``, mark frame px), fitted in one batch: per profile (w, centre, c) or None."""
+    profiles = np.asarray(profiles, float).reshape(-1, len(v))
+    out: list = [None] * len(profiles)
+    p0, k_ok = [], []
+    for i, q in enumerate(profiles):
+        b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+        j = int(np.argmax(q))
+        c0 = float(q[j] - b0)
+        if not c0 > 0:
+            continue
+        area = float(np.sum(q - b0) * (v[1] - v[0]))
+        w_init = float(np.clip(area / c0, 0.3 * w0, 4.0 * w0))
+        p0.append([b0, c0, float(v[j]), w_init])
+        k_ok.append(i)
+    if not k_ok:
+        return out
+    data = profiles[k_ok]
 
-    def rj(p):
-        b, c, v0, w = p
+    def rj(p, k):
+        pc = p[:, :, None]  # (k, 4, 1): each parameter against the samples
+        b, c, v0, w = pc[:, 0], pc[:, 1], pc[:, 2], pc[:, 3]
         f, J = _box_jac(v, b, c, v0 - 0.5 * w, v0 + 0.5 * w, s)
-        Jp = np.stack([J[:, 0], J[:, 1], J[:, 2] + J[:, 3], 0.5 * (J[:, 3] - J[:, 2])], 1)
-        return f - q, Jp
+        Jp = np.stack([J[..., 0], J[..., 1], J[..., 2] + J[..., 3],
+                       0.5 * (J[..., 3] - J[..., 2])], -1)
+        return f - data[k], Jp
 
-    p = _lm(rj, [b0, c0, float(v[j]), w_init], [-np.inf, 0.0, v[0], 0.05],
-            [np.inf, np.inf, v[-1], 8.0 * w0 + 4.0])
-    if p is None:
-        return None
-    b, c, v0, w = p
-    return w, v0, c
+    p = _lm(rj, p0, [-np.inf, 0.0, v[0], 0.05], [np.inf, np.inf, v[-1], 8.0 * w0 + 4.0])
+    for i, pi in zip(k_ok, p, strict=True):
+        if np.isfinite(pi).all():
+            b, c, v0, w = pi
+            out[i] = (w, v0, c)
+    return out
 
 
 def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, sign: int,
@@ -309,15 +371,15 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     # one fit to the median of the bars' normalised profiles: robust to the few bars that
     # scene content, a fault or a larger centre cross make different, and far less noisy
     # than each bar alone (a thin line under a wide blur has little contrast per sample)
-    fl = _fit_along(u, _median_profile([b[0] / b[2] for b in bars]), lo_half, hi_half,
-                    centre=centre, s0=s_g, width=w0)
+    # and each bar alone (the spread over the scan), in one batch
+    fits = _fit_along(u, [_median_profile([b[0] / b[2] for b in bars])]
+                      + [b[0] / b[2] for b in bars], lo_half, hi_half, centre=centre,
+                      s0=s_g, width=w0)
+    fl, one = fits[0], fits[1:]
     if fl is None:
         return MarkGeometry(L0, w0, float("nan"), float("nan"), len(bars), "certificate")
     a1, a2, sb, _ = fl
     arm = a2 - a1
-    # each bar alone: the spread over the scan
-    one = [_fit_along(u, b[0] / b[2], lo_half, hi_half, centre=centre, s0=s_g, width=w0)
-           for b in bars]
     arms_a = np.array([f[1] - f[0] for f in one if f is not None])
     sa = _robust_std(arms_a)
     offset = _centre_offset(one, axis, arm)
@@ -335,7 +397,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     w, sw = float("nan"), float("nan")
     if sel.sum() >= 3:
         acr = [b[1][:, sel].mean(1) for b in bars]
-        fits = [_fit_across(v, q, sb, w0) for q in acr]
+        fits = _fit_across(v, acr, sb, w0)
         widths_a = np.array([f[0] for f in fits if f is not None])
         sw = _robust_std(widths_a)
         # the bars' across profiles centred (each on its own fitted centre) and normalised
@@ -344,7 +406,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
             if f is not None and f[2] > 0:
                 b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
                 fm.append(np.interp(v + f[1], v, (q - b0) / f[2]))
-        fw = _fit_across(v, _median_profile(fm), sb, w0) if len(fm) >= 2 else None
+        fw = _fit_across(v, _median_profile(fm), sb, w0)[0] if len(fm) >= 2 else None
         if fw is not None:
             w = float(fw[0])
         if (len(widths_a) >= 3 and not sw <= CONSISTENT[1] * w) or not w <= MAX_WIDTH * arm:
