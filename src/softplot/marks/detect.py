@@ -79,6 +79,14 @@ MIN_PART = 6
 #: ... unless it has at least this many and reaches the grid's first and last row and column
 #: (no other naming is possible), and at least this many crosses are then measured
 MIN_SPANNING = 4
+#: crosses measured on a lattice of at least MIN_PART candidates that make a reseau: fewer than
+#: 4 are tested against the lattice's model (not a model of their own), and one cross agrees
+#: with it by chance (a busy plain photograph's cross-like corner near one of its nodes)
+MIN_MEASURED = 2
+#: fewer than 4 crosses measured lie within this (film mm, rms) of the lattice's model (the
+#: lattice's crosses place it to a few hundredths of a millimetre; a plain photograph's
+#: cross-like corners near its nodes lie 0.1-0.3 mm off)
+FEW_GRID_RMS_MM = 0.075
 
 
 def detect(
@@ -188,7 +196,8 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     lat = _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi)
     timings["grid"] = time.perf_counter() - t0
     # a lattice of fewer than MIN_PART candidates is a reseau once MIN_SPANNING crosses hold
-    min_measured = MIN_SPANNING if len(lat.grid.node) < min(MIN_PART, res.count) else 1
+    min_measured = (MIN_SPANNING if len(lat.grid.node) < min(MIN_PART, res.count)
+                    else MIN_MEASURED)
     pr = predict(lat, res.film(), ppm, blur_px)
     ambiguous = lat.grid.ambiguous
     del ov, lat  # the overview and the NCC map are not needed any more: free them
@@ -272,30 +281,32 @@ def _spans_grid(node, res) -> bool:
 
 
 def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous,
-           min_measured=1) -> list[str]:
-    """Refuse what is not a reseau (fewer than ``min_measured`` crosses measured, at least
-    one, or not on a grid); the warnings of one that is."""
+           min_measured=MIN_MEASURED) -> list[str]:
+    """Refuse what is not a reseau (fewer than ``min_measured`` crosses measured, or not on
+    a grid); the warnings of one that is."""
     res = cam.reseau
     N, n_in = res.count, len(m.fitted)
     n_meas = sum(s == "measured" for s in m.status)
-    if n_meas < max(1, min_measured):
-        # a lattice of candidates was found, but no cross holds up at full resolution (scene
-        # texture, the wrong polarity or the wrong camera); crosses that do are never thrown
-        # away for being few: the lattice of at least MIN_PART candidates (or one spanning
-        # the grid, MIN_SPANNING crosses measured) is the grid they lie on, and they are
-        # returned with a warning
+    if n_meas < min(min_measured, res.count):
+        # a lattice of candidates was found, but the crosses do not hold up at full resolution
+        # (scene texture, the wrong polarity or the wrong camera); crosses that do are never
+        # thrown away for being few: two on the lattice of at least MIN_PART candidates (or
+        # MIN_SPANNING on one spanning the grid) make a reseau, returned with a warning
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
             f"{n_meas} of the {n_in} inside the scan")
-    if v.rms > MAX_GRID_RMS_MM * ppm:
+    lim_mm = MAX_GRID_RMS_MM if n_meas >= 4 else FEW_GRID_RMS_MM
+    if v.rms > lim_mm * ppm:
         # measured, but not on a grid: fits to scene content (e.g. the wrong polarity over a
-        # busy scene), not a reseau deformed by at most a tenth of a millimetre
+        # busy scene), not a reseau deformed by at most a tenth of a millimetre; fewer than
+        # 4 crosses are held to the lattice's model, closer
         raise DetectionError(
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, the {n_meas} "
-            f"measured lie {v.rms:.1f} px (rms) off any projective grid (at most "
-            f"{MAX_GRID_RMS_MM * ppm:.1f} px, {MAX_GRID_RMS_MM} mm, for a reseau)")
+            f"measured lie {v.rms:.1f} px (rms) off "
+            f"{'any projective grid' if n_meas >= 4 else 'the lattice of candidates'} (at "
+            f"most {lim_mm * ppm:.1f} px, {lim_mm} mm, for a reseau)")
     warnings: list[str] = []
     if n_meas < N:
         warnings.append(f"{N - n_meas} of {N} crosses not measured")
