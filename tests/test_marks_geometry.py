@@ -172,3 +172,23 @@ def test_bar_fits_in_one_batch_equal_each_bar_fitted_alone():
     for q, fb, w in zip(across, batch, widths, strict=True):
         np.testing.assert_allclose(fb, _fit_across(v, q, 1.0, 2.0)[0], rtol=0, atol=1e-9)
         assert fb[0] == pytest.approx(w, abs=0.4) and fb[1] == pytest.approx(-0.3, abs=0.1)
+
+
+def test_profile_samples_equal_scipy_linear_interpolation():
+    """The profiles' samples (both bars of a cross in one interpolation) are what
+    ``map_coordinates(order=1, mode="nearest")`` gives, inside the window and beyond its
+    edges."""
+    from scipy.ndimage import map_coordinates
+
+    from softplot.marks.geometry import _bilinear
+
+    rng = np.random.default_rng(2)
+    img = rng.random((60, 80)).astype(np.float32)
+    rows = rng.uniform(-3.0, 63.0, (2, 500))
+    cols = rng.uniform(-3.0, 83.0, (2, 500))
+    rows[0, :4], cols[0, :4] = [0.0, 59.0, 59.0, 12.0], [0.0, 79.0, 0.0, 79.0]  # the corners
+    got = _bilinear(img, rows, cols)
+    want = np.stack([map_coordinates(img, [rows[k], cols[k]], order=1, mode="nearest")
+                     for k in range(2)])
+    assert got.dtype == want.dtype
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)

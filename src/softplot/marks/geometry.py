@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.ndimage import map_coordinates, uniform_filter1d
+from scipy.ndimage import uniform_filter1d
 from scipy.special import erf, ndtr
 
 from softplot.marks.template import MarkShape
@@ -348,7 +348,8 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     lo_half = 0.5 * ARM_RANGE[0] * L0
     hi_half = 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0
     centre = min(1.5 * w0 + 2.0, 0.6 * lo_half)
-    bars = [_bar_profiles(grey_at, xy[i], A[i], u, v, w0, lo_half, sign, H, V)
+    grid = _sample_grid(u, v)
+    bars = [_bar_profiles(grey_at, xy[i], A[i], u, v, grid, w0, lo_half, sign, H, V)
             for i in order]
     axis = [k for pair in bars if pair is not None for k, b in enumerate(pair) if b is not None]
     bars = [b for pair in bars if pair is not None for b in pair if b is not None]
@@ -437,9 +438,10 @@ def _median_profile(profiles: list) -> np.ndarray:
     return np.median(np.stack(profiles), axis=0)
 
 
-def _bar_profiles(grey_at, xy, A, u, v, w0, lo_half, sign, H, V):
+def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
     """The two bars' profiles of the cross at ``xy`` (pixel system; ``A`` its pixel ->
-    mark-frame affine): for each bar ``(along, grid, contrast, half width)``, ``along`` the
+    mark-frame affine; ``grid`` the samples' mark-frame positions, :func:`_sample_grid`):
+    for each bar ``(along, grid, contrast, half width)``, ``along`` the
     mean over a band across the bar (as long as ``u``, background removed), ``grid`` the
     samples (len(v), len(u)) with the bar along ``u``, ``contrast`` the bar's level over the
     background near the centre, ``half width`` the blurred line's at half maximum (px);
@@ -459,13 +461,12 @@ def _bar_profiles(grey_at, xy, A, u, v, w0, lo_half, sign, H, V):
         return None  # the profiles leave the scan
     win = sign * np.asarray(win, np.float32)
     dv = float(v[1] - v[0])
+    # the samples of both bars (0: the bar along u, film x; 1: along v) in one go, each
+    # (len(v), len(u)): rows across
+    px = Ai @ grid
+    both = _bilinear(win, px[:, 1] + y0 - r0, px[:, 0] + x0 - c0).reshape(2, len(v), len(u))
     out = []
-    for bar in (0, 1):  # 0: the bar along u (film x), 1: along v
-        uu, vv = np.meshgrid(u, v, indexing="xy")  # (len(v), len(u)): rows across
-        m = np.stack([uu, vv]) if bar == 0 else np.stack([vv, uu])
-        px = Ai @ m.reshape(2, -1)
-        s = map_coordinates(win, [px[1] + y0 - r0, px[0] + x0 - c0], order=1,
-                            mode="nearest").reshape(uu.shape)
+    for s in both:
         # the bar's position across (coarse centres are off by up to a few px)
         # (the other bar adds the same to every v within its width: no bias)
         inner = np.abs(u) <= max(lo_half, 3.0)
@@ -489,6 +490,31 @@ def _bar_profiles(grey_at, xy, A, u, v, w0, lo_half, sign, H, V):
         c = float(np.median(p[np.abs(u) <= max(lo_half, 2.0)])) - b0
         out.append((p - b0, s, c, 0.5 * (v[hi_j] - v[lo_j])) if c > 0 else None)
     return out
+
+
+def _sample_grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The mark-frame samples (px) of both bars' profiles, (2, 2, len(v) x len(u)): bar 0
+    along u (rows across it along v), bar 1 along v; coordinates (u, v) on the second axis."""
+    uu, vv = np.meshgrid(u, v, indexing="xy")
+    return np.stack([np.stack([uu, vv]), np.stack([vv, uu])]).reshape(2, 2, -1)
+
+
+def _bilinear(img: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``img`` (2-D, at least 2 x 2) at fractional ``rows``,
+    ``cols`` (pixel system of ``img``), beyond its edge the edge's value (what
+    ``scipy.ndimage.map_coordinates(img, [rows, cols], order=1, mode="nearest")`` gives);
+    in ``img``'s dtype."""
+    h, w = img.shape
+    r = np.clip(rows, 0.0, h - 1.0)
+    c = np.clip(cols, 0.0, w - 1.0)
+    i = np.minimum(r.astype(np.intp), h - 2)
+    j = np.minimum(c.astype(np.intp), w - 2)
+    tr, tc = r - i, c - j
+    f = img.ravel()
+    k = i * w + j
+    top = f[k] * (1.0 - tc) + f[k + 1] * tc
+    bottom = f[k + w] * (1.0 - tc) + f[k + w + 1] * tc
+    return (top * (1.0 - tr) + bottom * tr).astype(img.dtype)
 
 
 def width_candidates(geom: MarkGeometry, guess_px: float) -> list[float]:
