@@ -320,3 +320,16 @@ def test_shape_from_neighbours_removes_scene_pull(monkeypatch):
         assert not res["wrong"] and not res["claimed"]
         rms[z] = res["rms"]
     assert rms[2.5] < 0.7 * rms[np.inf], rms
+
+
+@pytest.mark.parametrize("dpi,blur", [(250, 2.2), (300, 2.5)])
+def test_blur_wider_than_expected_reaches_the_bound(dpi, blur):
+    """A scan blurrier than the detector expects (blur sigma 2.2-2.5 px, the default expects
+    1 px): windows and scene estimate sized for the expected blur cut the blurred bars' skirts
+    (RMS 1.41 and 1.51 x the bound); fitted again for the blur the crosses show, within 1.3 x."""
+    cam = "rollei-6006"
+    kw = dict(dpi=dpi, blur_sigma_px=blur, noise_sigma=0.01, scene="none")
+    img, truth = render(cam, 0, **kw)
+    res = evaluate(detect(scan_of(img, truth), cam), truth, cam, scene_of(cam, 0, **kw))
+    assert not res["wrong"] and not res["missed"], (res["wrong"], res["missed"])
+    assert res["rms"] <= 1.3 * res["crb_rms"], (res["rms"], res["crb_rms"])
