@@ -192,3 +192,31 @@ def test_profile_samples_equal_scipy_linear_interpolation():
                      for k in range(2)])
     assert got.dtype == want.dtype
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+
+
+def test_bar_samples_interpolated_on_demand_equal_the_full_grid():
+    """A bar's samples are interpolated only where used (the columns asked for): the values
+    of the whole sample grid interpolated by scipy, for both bars of a turned cross."""
+    from scipy.ndimage import map_coordinates
+
+    from softplot.marks.geometry import _bar_profiles, _sample_grid
+
+    rng = np.random.default_rng(4)
+    img = (0.5 + 0.02 * rng.normal(size=(200, 200))).astype(np.float32)
+    yy, xx = np.mgrid[:200, :200]
+    img[(np.abs(yy - 101.3) < 1.5) & (np.abs(xx - 99.6) < 30)] = 0.1
+    img[(np.abs(xx - 99.6) < 1.5) & (np.abs(yy - 101.3) < 30)] = 0.1
+    th = np.radians(2.0)
+    A = np.array([[np.cos(th), np.sin(th)], [np.sin(th), -np.cos(th)]])  # pixel -> mark frame
+    u, v = np.arange(-45.0, 45.0 + 1e-9, 0.5), np.arange(-9.0, 9.0 + 1e-9, 0.5)
+    grid = _sample_grid(u, v)
+    bars = _bar_profiles(lambda win: img[win], (99.6, 101.3), A, u, v, grid, 3.0, 9.0, -1,
+                         45.0, 9.0)
+    px = np.linalg.inv(A) @ grid
+    sel = np.abs(u) < 20.0
+    for b in (0, 1):
+        assert bars[b] is not None and bars[b][2] > 0.3  # the bar's contrast (0.4)
+        full = map_coordinates(-img, [px[b, 1] + 101.3, px[b, 0] + 99.6], order=1,
+                               mode="nearest").reshape(len(v), len(u))
+        np.testing.assert_allclose(bars[b][1](np.ones(len(u), bool)), full, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(bars[b][1](sel), full[:, sel], rtol=0, atol=1e-6)

@@ -397,7 +397,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
         sel = (u > a1 + 0.5 * sb) & (u < a2 - 0.5 * sb) & (np.abs(u) > 0.5 * w0 + sb)
     w, sw = float("nan"), float("nan")
     if sel.sum() >= 3:
-        acr = [b[1][:, sel].mean(1) for b in bars]
+        acr = [b[1](sel).mean(1) for b in bars]
         fits = _fit_across(v, acr, sb, w0)
         widths_a = np.array([f[0] for f in fits if f is not None])
         sw = _robust_std(widths_a)
@@ -441,9 +441,10 @@ def _median_profile(profiles: list) -> np.ndarray:
 def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
     """The two bars' profiles of the cross at ``xy`` (pixel system; ``A`` its pixel ->
     mark-frame affine; ``grid`` the samples' mark-frame positions, :func:`_sample_grid`):
-    for each bar ``(along, grid, contrast, half width)``, ``along`` the
-    mean over a band across the bar (as long as ``u``, background removed), ``grid`` the
-    samples (len(v), len(u)) with the bar along ``u``, ``contrast`` the bar's level over the
+    for each bar ``(along, columns, contrast, half width)``, ``along`` the
+    mean over a band across the bar (as long as ``u``, background removed), ``columns(sel)``
+    the samples (len(v), sel.sum()) of the columns ``sel`` (bool, len(u)) with the bar along
+    ``u``, ``contrast`` the bar's level over the
     background near the centre, ``half width`` the blurred line's at half maximum (px);
     None for a bar without contrast, None for both where the profiles leave the scan."""
     Ai = np.linalg.inv(A)  # mark frame -> pixel offsets
@@ -461,16 +462,18 @@ def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
         return None  # the profiles leave the scan
     win = sign * np.asarray(win, np.float32)
     dv = float(v[1] - v[0])
-    # the samples of both bars (0: the bar along u, film x; 1: along v) in one go, each
-    # (len(v), len(u)): rows across
+    # where both bars (0: the bar along u, film x; 1: along v) are sampled, each
+    # (len(v), len(u)): rows across; only the samples used are interpolated
     px = Ai @ grid
-    both = _bilinear(win, px[:, 1] + y0 - r0, px[:, 0] + x0 - c0).reshape(2, len(v), len(u))
+    rows = (px[:, 1] + y0 - r0).reshape(2, len(v), len(u))
+    cols = (px[:, 0] + x0 - c0).reshape(2, len(v), len(u))
+    inner = np.abs(u) <= max(lo_half, 3.0)
+    core = _bilinear(win, rows[:, :, inner], cols[:, :, inner])
     out = []
-    for s in both:
+    for bar in (0, 1):
         # the bar's position across (coarse centres are off by up to a few px)
         # (the other bar adds the same to every v within its width: no bias)
-        inner = np.abs(u) <= max(lo_half, 3.0)
-        q = uniform_filter1d(s[:, inner].mean(1), max(1, int(round(0.5 * w0 / dv))))
+        q = uniform_filter1d(core[bar].mean(1), max(1, int(round(0.5 * w0 / dv))))
         j = int(np.argmax(q))
         vc = float(v[j])
         # the band across the bar: the blurred line's half maximum (a thin line under a
@@ -484,11 +487,15 @@ def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
             hi_j += 1
         bw = float(np.clip(0.5 * (v[hi_j] - v[lo_j]), max(0.5 * w0, 0.75), 0.5 * w0 + 4.0))
         band = np.abs(v - vc) <= bw
-        p = s[band].mean(0)
+        p = _bilinear(win, rows[bar][band], cols[bar][band]).mean(0)
         n8 = max(len(p) // 8, 1)
         b0 = float(np.median(np.concatenate([p[:n8], p[-n8:]])))
         c = float(np.median(p[np.abs(u) <= max(lo_half, 2.0)])) - b0
-        out.append((p - b0, s, c, 0.5 * (v[hi_j] - v[lo_j])) if c > 0 else None)
+
+        def columns(sel, r=rows[bar], k=cols[bar]):
+            return _bilinear(win, r[:, sel], k[:, sel])
+
+        out.append((p - b0, columns, c, 0.5 * (v[hi_j] - v[lo_j])) if c > 0 else None)
     return out
 
 
