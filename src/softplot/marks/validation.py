@@ -27,11 +27,11 @@ from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "lone_arms", "median_gain",
+           "rescue", "lone_arms", "median_gain", "extrapolation",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN",
-           "RESCUE_MAX_SIGMA_RATIO"]
+           "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -47,6 +47,9 @@ MAX_GRID_RMS_MM = 0.3
 #: (:func:`departure_model`: from the mark's own sigma and the scan's prediction error) is
 #: an outlier (for a Gaussian departure a chance of exp(-2.75^2) = 5e-4 per mark)
 OUTLIER_K = 2.75
+#: the outlier test's floor grows at most this many times where a mark's neighbours'
+#: prediction extrapolates further than is typical (:func:`extrapolation`)
+EXTRAPOLATION_MAX = 2.0
 #: a cross measured again (:func:`rescue`) has at least this share of the measured crosses'
 #: median contrast (crosses under a 30 % dark region keep 0.3 of it)
 RESCUE_MIN_GAIN = 0.1
@@ -269,7 +272,7 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     Hm = H0
     n_max = max(1, len(film) // 10)
     edge = outline(film, np.array([s == "measured" for s in status]))
-    coef = None
+    coef = reach = None
     for _ in range(n_max):
         m = np.array([s == "measured" for s in status])
         if m.sum() < 8:
@@ -285,7 +288,10 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         sg = np.nan_to_num(sigma[idx], nan=1.0)
         if coef is None:  # from all measured marks, before any is rejected
             coef = departure_model(dev, sg, edge[idx])
-        fl = np.broadcast_to(floor_px, (len(film),))[idx]
+        if coef is None or reach is None:  # the marks measured when the test starts
+            reach = np.ones(len(film))
+            reach[idx] = extrapolation(film[idx], sigma[idx], edge[idx])
+        fl = np.broadcast_to(floor_px, (len(film),))[idx] * reach[idx]
         thr = outlier_threshold(spread, fl, sg, expected_departure(coef, sg, edge[idx]))
         bad = dev > thr
         if not bad.any():
@@ -300,6 +306,25 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     residual = np.where(m[:, None], r, np.nan)
     rms = float(np.sqrt(np.mean(np.sum(r[m] ** 2, 1)))) if m.any() else float("nan")
     return Hm, residual, rms, coef
+
+
+def extrapolation(film, sigma, edge, draws=16):
+    """How far each mark's neighbours' prediction (:func:`local_prediction`) reaches beyond
+    what is typical in its group (the grid's outline ``edge`` (M,) bool, or the inside):
+    the square root of the prediction's variance for unit noise on the neighbours
+    (``draws`` simulated sets) over its group's median, from 1 to :data:`EXTRAPOLATION_MAX`
+    (M,). A corner of a strip of two rows beside a dark band, or of a cropped frame,
+    extrapolates further than a mark along the outline: the deformation the local quadratic
+    misses grows alike. A lone mark far from its neighbours (one measured on the noise of a
+    dark region) extrapolates farther still, but is held to the cap."""
+    z = np.random.default_rng(0).standard_normal((draws, len(film), 2))
+    p = local_prediction(film, z, sigma=sigma)
+    g = np.mean(p**2, axis=(0, 2))
+    out = np.ones(len(film))
+    for grp in (edge, ~edge):
+        if grp.sum() >= 8:
+            out[grp] = np.clip(np.sqrt(g[grp] / np.median(g[grp])), 1.0, EXTRAPOLATION_MAX)
+    return out
 
 
 def median_gain(fine) -> float | None:
