@@ -70,8 +70,8 @@ MU = 1.0
 #: fitted mark (pixels within this many px of where its blurred template ``T`` exceeds
 #: :data:`BAND_T`); outside it the scene is held at the starting estimate. Default: the whole
 #: patch (``inf``): with 8 px and 40/30 iterations the busy renders' RMS was that of the
-#: whole patch on most renders at half the solver's time, but not on the noisiest
-#: (docs/benchmarks.md, "Busy scenes")
+#: whole patch on most renders but not on the noisiest (docs/benchmarks.md, "Busy scenes"),
+#: and since the whole-patch kernel runs over padded rows the band solve is the slower one
 BAND_PX = math.inf
 BAND_T = 0.01
 #: steps of the primal-dual solver: tau * sigma * ||K||^2 <= 1 with ||K||^2 <= 8 + 1
