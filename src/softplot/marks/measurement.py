@@ -245,10 +245,8 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     both = fine.ok[redo] & f2.ok
     if both.any() and fine.ok.sum() >= 8:
         m = np.where(fine.ok)[0]
-        Hm = grid.projective_fit(film[m], fine.xy[m])
-        near = local_prediction(film[m], fine.xy[m] - grid.apply_h(Hm, film[m]))
         k = redo[both]
-        at = grid.apply_h(Hm, film[k]) + near[np.searchsorted(m, k)]
+        at = neighbours_place(film[m], fine.xy[m])[np.searchsorted(m, k)]
         worse = np.hypot(*(f2.xy[both] - at).T) > np.hypot(*(fine.xy[k] - at).T)
         f2.ok[np.where(both)[0][worse]] = False
     for j, i in enumerate(redo):
@@ -302,6 +300,15 @@ def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_sh
                         a[i] = b[j]
 
 
+def neighbours_place(film: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Where each mark's neighbours put it (M, 2) px, pixel system: the projective model of
+    all marks (``film`` (M, 2) mm -> ``xy`` (M, 2) px) plus the outlier test's leave-one-out
+    prediction of its residual (:func:`softplot.marks.neighbours.local_prediction`)."""
+    Hm = grid.projective_fit(film, xy)
+    at = grid.apply_h(Hm, film)
+    return at + local_prediction(film, xy - at)
+
+
 def _fits_better(f1: Fine, f0: Fine, film: np.ndarray) -> bool:
     """Does the second pass ``f1`` (windows for a wider blur) measure the crosses (``film``
     (M, 2) mm) better than the first ``f0``? It must accept at least :data:`BLUR_KEEP` of
@@ -318,9 +325,8 @@ def _fits_better(f1: Fine, f0: Fine, film: np.ndarray) -> bool:
         return n1 >= max(8, 2 * n0)
 
     def departure(xy):
-        Hm = grid.projective_fit(film[both], xy[both])
-        r = xy[both] - grid.apply_h(Hm, film[both])
-        return float(np.median(np.sum(np.square(r - local_prediction(film[both], r)), 1)))
+        d = xy[both] - neighbours_place(film[both], xy[both])
+        return float(np.median(np.sum(np.square(d), 1)))
 
     return departure(f1.xy) <= BLUR_BETTER * departure(f0.xy)
 
