@@ -15,7 +15,7 @@ _POOL = None
 _POOL_LOCK = threading.Lock()
 _IN_POOL = threading.local()
 
-__all__ = ["tune_allocator", "set_threads", "threads", "thread_map"]
+__all__ = ["tune_allocator", "set_threads", "threads", "thread_map", "concurrent"]
 
 
 def set_threads(n: int | None) -> None:
@@ -59,6 +59,12 @@ def _run_marked(fn, x):
         _IN_POOL.active = False
 
 
+def concurrent() -> bool:
+    """Whether :func:`thread_map` runs its items on several threads here: more than one
+    thread, and not called from one of its own pool threads (where it runs sequentially)."""
+    return threads() > 1 and not getattr(_IN_POOL, "active", False)
+
+
 def thread_map(fn, items) -> list:
     """``[fn(x) for x in items]``, on :func:`threads` threads when there are several items.
 
@@ -70,15 +76,14 @@ def thread_map(fn, items) -> list:
     raised in the caller.
     """
     items = list(items)
-    n = threads()
-    if n <= 1 or len(items) <= 1 or getattr(_IN_POOL, "active", False):
+    if len(items) <= 1 or not concurrent():
         return [fn(x) for x in items]
     global _POOL
     with _POOL_LOCK:
         if _POOL is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="softplot")
+            _POOL = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="softplot")
         pool = _POOL
     return list(pool.map(lambda x: _run_marked(fn, x), items))
 

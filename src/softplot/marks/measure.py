@@ -17,7 +17,7 @@ from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shad
 from softplot.marks.coarse import _release_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
-from softplot.runtime import thread_map
+from softplot.runtime import concurrent, thread_map
 
 __all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma"]
 
@@ -331,6 +331,30 @@ LONE_BAR_MIN_GAIN = 0.1
 REFIT_SETTLE = 0.25
 
 
+#: the joint scene solve of at least twice this many patches is split in two halves solved
+#: on two threads (:func:`_deconv`) where the caller is not on a pool thread already
+DECONV_SPLIT_MIN = 3
+
+
+def _deconv(g, T, level, X0, mu, s_e, iters):
+    """:func:`softplot.marks.scene_tv.deconv_tv` of N patches (pixel system, (N, h, w)).
+
+    The patches are solved independently of each other: where :func:`thread_map` runs
+    concurrently (a single chunk of marks: refits, retries, rescues), the first and the second
+    half are solved on two threads (the compiled solver releases the GIL), each as by a call
+    of its own: the same values as one call. Inside a pool thread (the chunks already run side
+    by side) or on one thread, one call. Returns ``(B, X)`` as ``deconv_tv``."""
+    n = len(g)
+    if n < 2 * DECONV_SPLIT_MIN or not concurrent():
+        return scene_tv.deconv_tv(g, T, level, X0, mu, s_e, iters=iters)
+    mu = np.broadcast_to(np.asarray(mu), (n,))
+    level = np.broadcast_to(np.asarray(level), (n,))
+    h = (n + 1) // 2
+    out = thread_map(lambda s: scene_tv.deconv_tv(g[s], T[s], level[s], X0[s], mu[s], s_e,
+                                                  iters=iters), (slice(0, h), slice(h, n)))
+    return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
+
+
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
                  fit_blur=True, select=None, groups=None):
     """LSM again with the scene under each fitted cross estimated jointly with it.
@@ -397,9 +421,8 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
             g = stack[idx]
             level = res.level[idx]
             noise = noise_set[idx]
-            B, X[idx] = scene_tv.deconv_tv(g, T, level, X[idx], scene_tv.MU * noise,
-                                           np.hypot(sm, np.sqrt(1 / 12)),
-                                           iters=scene_tv.iterations(p))
+            B, X[idx] = _deconv(g, T, level, X[idx], scene_tv.MU * noise,
+                                np.hypot(sm, np.sqrt(1 / 12)), scene_tv.iterations(p))
             wt = _edge_weights(B, noise, REFIT_DELTA)
             if keep is not None:
                 wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
