@@ -270,9 +270,9 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     cross = scene and shape.kind == "cross" and bool(np.isfinite(stack).all())
     top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
     del grad  # not held through LSM (the fine stage's peak memory)
-    res = first if first is not None else lsm(
-        stack, origin, c0, A0, shape, s0=s0, init_err=init_err, fit_shape=fit_shape,
-        background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0), fit_blur=fit_blur)
+    res = first if first is not None else _lsm(
+        stack, origin, c0, A0, shape, bg, wt, s0=s0, init_err=init_err, fit_shape=fit_shape,
+        clip=(0.0, 1.0), fit_blur=fit_blur)
     edge = np.full(len(c0), np.nan)
     if cross:
         if top is not None:
@@ -331,28 +331,72 @@ LONE_BAR_MIN_GAIN = 0.1
 REFIT_SETTLE = 0.25
 
 
-#: the joint scene solve of at least twice this many patches is split in two halves solved
-#: on two threads (:func:`_deconv`) where the caller is not on a pool thread already
-DECONV_SPLIT_MIN = 3
+#: a single chunk of at least twice this many marks is fitted in two halves on two threads
+#: where :func:`softplot.runtime.thread_map` runs concurrently (:func:`_halves`)
+SPLIT_MIN = 4
 
 
-def _deconv(g, T, level, X0, mu, s_e, iters):
-    """:func:`softplot.marks.scene_tv.deconv_tv` of N patches (pixel system, (N, h, w)).
+def _halves(idx: np.ndarray) -> list[np.ndarray]:
+    """The marks ``idx`` in two halves where :func:`thread_map` runs concurrently (a single
+    chunk of marks: refits, retries, rescues; inside a pool thread, where the chunks already
+    run side by side, or on one thread: one part). Each mark's scene solve and LSM fit are
+    its own (as for any chunking); the first half is a multiple of 4 marks, so the
+    template's batches of 4 (:func:`_template`) are those of one part."""
+    n = len(idx)
+    if n < 2 * SPLIT_MIN or not concurrent():
+        return [idx]
+    h = -(-n // 8) * 4
+    return [idx[:h], idx[h:]]
 
-    The patches are solved independently of each other: where :func:`thread_map` runs
-    concurrently (a single chunk of marks: refits, retries, rescues), the first and the second
-    half are solved on two threads (the compiled solver releases the GIL), each as by a call
-    of its own: the same values as one call. Inside a pool thread (the chunks already run side
-    by side) or on one thread, one call. Returns ``(B, X)`` as ``deconv_tv``."""
-    n = len(g)
-    if n < 2 * DECONV_SPLIT_MIN or not concurrent():
-        return scene_tv.deconv_tv(g, T, level, X0, mu, s_e, iters=iters)
-    mu = np.broadcast_to(np.asarray(mu), (n,))
-    level = np.broadcast_to(np.asarray(level), (n,))
-    h = (n + 1) // 2
-    out = thread_map(lambda s: scene_tv.deconv_tv(g[s], T[s], level[s], X0[s], mu[s], s_e,
-                                                  iters=iters), (slice(0, h), slice(h, n)))
-    return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
+
+def _lsm(stack, origin, c0, A0, shape, bg, wt, **kw) -> LSMResult:
+    """:func:`softplot.marks.lsm.lsm` of N patches (pixel system), the two halves of
+    :func:`_halves` on two threads where that splits them (the compiled kernels release the
+    GIL). ``bg``, ``wt``: the scene estimate and prior pixel weights (N, h, w) or None."""
+    n = len(c0)
+    A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))
+
+    def one(k):
+        b = None if bg is None else bg[k]
+        return lsm(stack[k], origin[k], c0[k], A0[k], shape, background=b,
+                   weight=None if wt is None else wt[k], sat_bg=_saturated(b), **kw)
+
+    parts = _halves(np.arange(n))
+    return one(slice(None)) if len(parts) == 1 else _concat(thread_map(one, parts))
+
+
+def _refit_pass(stack, origin, res, X, idx, sm, noise_set, keep, shape, fit_shape, fit_blur,
+                p):
+    """Pass ``p`` of :func:`_refit_scene` for the marks ``idx`` that share the blur ``sm``
+    (px): the scene under each held cross solved from ``X`` (the last solution, (N, h, w)
+    pixel system), its gradient's prior pixel weights, and LSM from the last fit ``res``.
+    Each mark's solve and fit are its own: the two halves of :func:`_halves` on two threads
+    where that splits them. Returns the LSMResult and the scene ``X`` of the marks ``idx``."""
+
+    def one(k):
+        A = res.A[k]
+        T = _template(shape, origin[k], res.centre[k], A, res.s[k], stack.shape[1:])
+        g = stack[k]
+        noise = noise_set[k]
+        B, Xk = scene_tv.deconv_tv(g, T, res.level[k], X[k], scene_tv.MU * noise,
+                                   np.hypot(sm, np.sqrt(1 / 12)), iters=scene_tv.iterations(p))
+        wt = _edge_weights(B, noise, REFIT_DELTA)
+        if keep is not None:
+            wt = np.where(keep[k], wt, 0.0).astype(np.float32)
+        # (without fit_shape the fitted affine is A0's)
+        # every refitted cross takes the first REFIT_ALL_PASSES passes: the covariance of
+        # the earlier ones (costly with the residuals' correlation) is replaced, except
+        # where a later refit is not taken (rare: that cross keeps an independent-pixel one)
+        new = lsm(g, origin[k], res.centre[k], A, shape, s0=sm, init_err=0.3,
+                  fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
+                  clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
+        return new, Xk
+
+    parts = _halves(idx)
+    if len(parts) == 1:
+        return one(idx)
+    out = thread_map(one, parts)
+    return _concat([o[0] for o in out]), np.concatenate([o[1] for o in out])
 
 
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
@@ -416,24 +460,8 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         moved[:] = 0.0
         for sm in np.unique(s_med[ok]):  # the sets that share a blur: one solve and fit
             idx = np.where(ok & (s_med == sm))[0]
-            A = res.A[idx]
-            T = _template(shape, origin[idx], res.centre[idx], A, res.s[idx], stack.shape[1:])
-            g = stack[idx]
-            level = res.level[idx]
-            noise = noise_set[idx]
-            B, X[idx] = _deconv(g, T, level, X[idx], scene_tv.MU * noise,
-                                np.hypot(sm, np.sqrt(1 / 12)), scene_tv.iterations(p))
-            wt = _edge_weights(B, noise, REFIT_DELTA)
-            if keep is not None:
-                wt = np.where(keep[idx], wt, 0.0).astype(np.float32)
-            # (without fit_shape the fitted affine is A0's)
-            # every refitted cross takes the first REFIT_ALL_PASSES passes: the covariance of
-            # the earlier ones (costly with the residuals' correlation) is replaced, except
-            # where a later refit is not taken (rare: that cross keeps an independent-pixel
-            # one)
-            new = lsm(g, origin[idx], res.centre[idx], A, shape, s0=float(sm), init_err=0.3,
-                      fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
-                      clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
+            new, X[idx] = _refit_pass(stack, origin, res, X, idx, float(sm), noise_set, keep,
+                                      shape, fit_shape, fit_blur, p)
             move = np.hypot(*(new.centre - res.centre[idx]).T)
             take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
                     & (move <= REFIT_MAX_MOVE))
