@@ -152,6 +152,8 @@ def test_joint_passes_go_on_only_for_the_crosses_still_moving(monkeypatch):
         return out
 
     monkeypatch.setattr(measure, "lsm", spy)
+    # one LSM call per pass (on several threads a pass fits its marks in two halves)
+    monkeypatch.setattr(measure, "concurrent", lambda: False)
     measure._fit(sc, shape, c0, A0, float(np.hypot(1.0, np.sqrt(1 / 12))), 0.75, sign,
                  True, True, scene_tv=4, rules=AcceptRules())
     # the first fit, then 2 joint passes of every cross, a third of those still moving, and a
