@@ -39,6 +39,10 @@ min) and CPU time of the process (all threads); and ``softplot detect`` over ``-
 1200 dpi scans in one process (a subprocess: interpreter start, imports and the compiled
 kernels' loading included) against one scan per process, per scan.
 
+One and two threads (``--threads-alternate``): the busy scans (default scene model) detected
+in this process on one thread and on two, alternating detection by detection (both see the
+same load of a shared machine); wall and CPU time of load + detect.
+
 Two versions (``--compare SRC``): the busy scans detected by this checkout's code and by
 the code under ``SRC`` in two worker processes side by side, alternating detection by
 detection (each warmed up on each scan first), CPU and wall time of load + detect: on a
@@ -49,6 +53,7 @@ Usage::
     .venv/bin/python tools/bench_detect.py [--runs 5] [--cases rollei-2400,rollei-1200,aerial-19k]
     .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8] [--threads 1]
     .venv/bin/python tools/bench_detect.py --compare OTHER/src [--runs 8] [--threads 1]
+    .venv/bin/python tools/bench_detect.py --threads-alternate [--runs 8]
 """
 
 from __future__ import annotations
@@ -258,6 +263,38 @@ def busy(runs: int, batch: int, n_threads: int | None = None) -> None:
     print(f"load average at end: {_load()}")
 
 
+def alternate(runs: int) -> None:
+    """``--threads-alternate``: one and two threads in this process, alternating."""
+    from softplot.io import load_scan
+    from softplot.marks import detect, kernels
+    from softplot.runtime import set_threads, tune_allocator
+    from softplot.synthetic import ScanSpec, write_scan
+
+    tune_allocator()
+    kernels.load()
+    print(f"load average at start: {_load()}")
+    with tempfile.TemporaryDirectory(prefix="bench_thr_") as tmp:
+        for dpi in (1200, 2400):
+            path, _ = write_scan(Path(tmp), "rollei-6006", ScanSpec(dpi=dpi, rotation_deg=1.5,
+                                                                     scene="busy"), seed=7,
+                                 stem=f"busy-{dpi}")
+            res = {n: ([], []) for n in (1, 2)}
+            for i in range(runs + 1):
+                for n in (1, 2):
+                    set_threads(n)
+                    t, c = time.perf_counter(), time.process_time()
+                    detect(load_scan(path), "rollei-6006")
+                    if i:  # the first round warms caches
+                        res[n][0].append(time.perf_counter() - t)
+                        res[n][1].append(time.process_time() - c)
+            for n, (w, c) in res.items():
+                print(f"busy {dpi} dpi, {n} thread{'s' if n > 1 else ''}: load + detect wall "
+                      f"median {statistics.median(w):.3f} s (min {min(w):.3f}), CPU median "
+                      f"{statistics.median(c):.3f} s, n={len(w)}")
+    set_threads(None)
+    print(f"load average at end: {_load()}")
+
+
 def _worker(n_threads: int) -> None:
     """``--worker``: detect the busy scans named on stdin, one per line; print CPU and wall
     time of each (load + detect) on stdout. Warmed up on every scan first."""
@@ -333,6 +370,8 @@ def main() -> None:
     ap.add_argument("--compare", metavar="SRC",
                     help="the busy scans, this code against the code under SRC (another "
                          "version's src folder), alternating in two processes")
+    ap.add_argument("--threads-alternate", action="store_true",
+                    help="the busy scans on one and two threads, alternating in this process")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -341,6 +380,9 @@ def main() -> None:
         return
     if a.worker:
         _worker(a.worker)
+        return
+    if a.threads_alternate:
+        alternate(a.runs)
         return
     if a.compare:
         compare(a.compare, a.runs, a.threads or 1)
