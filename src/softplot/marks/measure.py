@@ -340,12 +340,12 @@ def _halves(idx: np.ndarray) -> list[np.ndarray]:
     """The marks ``idx`` in two halves where :func:`thread_map` runs concurrently (a single
     chunk of marks: refits, retries, rescues; inside a pool thread, where the chunks already
     run side by side, or on one thread: one part). Each mark's scene solve and LSM fit are
-    its own (as for any chunking); the first half is a multiple of 4 marks, so the
-    template's batches of 4 (:func:`_template`) are those of one part."""
+    its own (as for any chunking); the first half is the multiple of 4 marks nearest half of
+    them, so the template's batches of 4 (:func:`_template`) are those of one part."""
     n = len(idx)
     if n < 2 * SPLIT_MIN or not concurrent():
         return [idx]
-    h = -(-n // 8) * 4
+    h = 4 * max(1, round(n / 8))
     return [idx[:h], idx[h:]]
 
 
