@@ -62,13 +62,10 @@ def _rms(det, truth):
 
 
 def test_busy_scene_accuracy_of_the_band_equals_the_whole_patch_solve(monkeypatch):
-    """Busy scenes (the joint scene model): the band of 8 px gives the RMS error of the
-    default (whole patch), both with the default iterations, within 3 % pooled over three
-    renders, the same crosses measured, no cross moved by more than 0.02 px; and both stay
-    well below the opening's error. (With the solver's steps of before, tau = sigma = 1/3,
-    40 iterations in the first pass and 30 in the others did; with the primal step 9 x the
-    dual one the whole-patch solve gets closer to the optimum and the band's 40/30 differ by
-    up to 0.05 px.)"""
+    """Busy scenes (the joint scene model): the band of 8 px with 40 iterations in the first
+    pass and 30 in the others gives the RMS error of the default (whole patch, 60 each)
+    within 3 % pooled over three renders, the same crosses measured, no cross moved by more
+    than 0.02 px; and both stay well below the opening's error."""
     rms_new, rms_old, rms_open = [], [], []
     for seed in (11, 12, 13):
         img, truth = render_scan("rollei-6006", ScanSpec(dpi=1000, rotation_deg=1.5,
@@ -77,6 +74,8 @@ def test_busy_scene_accuracy_of_the_band_equals_the_whole_patch_solve(monkeypatc
         old = detect(sc, "rollei-6006", scene="joint")
         with monkeypatch.context() as m:
             m.setattr(scene_tv, "BAND_PX", 8.0)
+            m.setattr(scene_tv, "ITERATIONS", 40)
+            m.setattr(scene_tv, "ITERATIONS_WARM", 30)
             new = detect(sc, "rollei-6006", scene="joint")
         opening = detect(sc, "rollei-6006", scene="opening")
         assert new.status == old.status

@@ -72,14 +72,10 @@ MU = 1.0
 #: patch (``inf``): with 8 px and 40/30 iterations the busy renders' RMS was that of the
 #: whole patch on most renders but not on the noisiest (docs/benchmarks.md, "Busy scenes"),
 #: and since the whole-patch kernel runs over padded rows the band solve is the slower one
-#: (with :data:`TAU`, :data:`SIGMA` the band needs the whole patch's iterations)
 BAND_PX = math.inf
 BAND_T = 0.01
-#: steps of the primal-dual solver: tau * sigma * ||K||^2 <= 1 with ||K||^2 <= 8 + 1, the
-#: primal step 9 x the dual one (the scene in grey units, the dual of TV bounded by ``mu``, a
-#: fraction of the noise: the balanced 1/3 and 1/3 moved the scene under a bar too slowly)
-TAU = 1.0
-SIGMA = 1.0 / 9.0
+#: steps of the primal-dual solver: tau * sigma * ||K||^2 <= 1 with ||K||^2 <= 8 + 1
+TAU = SIGMA = 1.0 / 3.0
 
 
 def gauss_taps(s_e: float) -> np.ndarray:
