@@ -75,9 +75,11 @@ def plot_qc(det: Detection, scan, path: str | Path, n_chips: int = 6, dpi: int =
                                    ("missing", "0.6", "o")):
         m = st == status
         if m.any():
+            # missing: a hollow ring (a colour given as ``c`` would fill it)
+            paint = ({"facecolors": "none", "edgecolors": colour} if marker == "o"
+                     else {"c": colour})
             ax.scatter(pos[m, 0], pos[m, 1], marker=marker, s=28 if status != "missing" else 18,
-                       c=colour, label=f"{status} ({int(m.sum())})",
-                       facecolors="none" if marker == "o" else None)
+                       label=f"{status} ({int(m.sum())})", **paint)
     one = meas & (np.asarray(det.arms) == 1) if det.arms is not None else np.zeros_like(meas)
     if one.any():  # measured across one bar only: ringed
         ax.scatter(pos[one, 0], pos[one, 1], marker="s", s=60, facecolors="none",
