@@ -97,3 +97,36 @@ def test_variance_factor_is_the_draw_by_draw_figure():
     ref = _variance_factor_draw_by_draw(film, r, C, neighbours.local_prediction, 47.2)
     assert 1.5 < ref < 4.0
     assert abs(got - ref) < 1e-9 * ref
+
+
+def test_compiled_local_fit_is_the_numpy_fit(monkeypatch):
+    """The compiled local fits (:func:`softplot.marks.kernels.local_solve`) give NumPy's
+    figures: single sets, batches weighted by their own departures, a partial grid whose
+    queries drop to lower degrees; and both reproduce an exact cubic field."""
+    from softplot.marks import kernels
+
+    if not kernels.ready():
+        return
+    film, rng = _grid(seed=5, rows=3)  # three rows: no cubic in y, mixed degrees
+    full, _ = _grid(seed=9)
+    sig = rng.uniform(0.01, 0.05, len(full))
+    R = rng.normal(0, 0.05, (5,) + full.shape)
+    R[1, 3] += 1.0
+    x, y = full.T / 50.0
+    truth = np.stack([0.3 + x - 0.5 * y**2 + 0.2 * x**3, -0.1 + x * y - 0.3 * x**2 * y], 1)
+
+    def fits():
+        return [local_fit(film, film, R[0, : len(film)], k, deg)
+                for k, deg in ((16, 2), (24, 3))] + [
+            local_prediction(full, R, sigma=sig), local_prediction(full, R[1], sigma=sig),
+            local_fit(full[::3], full, R[2], 24, 3, n_sigma=sig),
+            local_fit(full, full, truth, 24, 3)]
+
+    got = fits()
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    ref = fits()
+    for a, b in zip(got, ref, strict=True):
+        assert a.shape == b.shape and np.max(np.abs(a - b)) < 1e-11
+    # an exact cubic is reproduced inside the grid (to the normal equations' ridge of 1e-9)
+    inner = ~neighbours.outline(full)
+    assert np.max(np.abs(got[-1] - truth)[inner]) < 1e-6

@@ -23,7 +23,12 @@ the covariance, summed directly over the few lags it uses instead of by FFTs) an
 per-call overhead; these passes hold the GIL only to start
 (``tests/test_marks_speed_accuracy.py::test_compiled_lsm_step_gather_and_correlation_match_numpy``).
 
-All arrays are in the pixel system of :mod:`softplot.marks.lsm` (coordinates relative to
+:func:`local_solve` fits the neighbours' local polynomials of
+:func:`softplot.marks.neighbours.local_fit` (film mm in units of the neighbour spacing), one
+pass per fit, the degree chosen as there
+(``tests/test_marks_neighbours_batch.py::test_compiled_local_fit_is_the_numpy_fit``).
+
+The LSM arrays are in the pixel system of :mod:`softplot.marks.lsm` (coordinates relative to
 each mark's reference pixel). Without numba (or with ``SOFTPLOT_JIT=0`` in the environment)
 :data:`AVAILABLE` is False and LSM uses its NumPy path.
 """
@@ -39,7 +44,7 @@ import numpy as np
 from softplot.marks.template import _ZSAT, _Phi_phi
 
 __all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
-           "cross_template", "corr_sums", "half_arms", "load", "ready"]
+           "cross_template", "corr_sums", "half_arms", "local_solve", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -713,6 +718,112 @@ def half_arms(p, data, last, width):
                np.float32(width), np.maximum(last["s0sq"], 1e-30), d, var, ms)
     return d, var, ms
 
+@njit(fastmath=False, cache=True, nogil=True)
+def _chol_above(Nn, L, tol, A):
+    # Cholesky pivots of Nn[:L, :L] - tol I all positive (neighbours._smallest_eig_above)
+    for a in range(L):
+        for b in range(L):
+            A[a, b] = Nn[a, b]
+        A[a, a] -= tol
+    for c in range(L):
+        piv = A[c, c]
+        if not piv > 0.0:
+            return False
+        for a in range(c + 1, L):
+            f = A[a, c] / piv
+            for b in range(c + 1, L):
+                A[a, b] -= f * A[c, b]
+    return True
+
+
+@njit(fastmath=False, cache=True, nogil=True)
+def _local_solve(D, w, vals, tol, out, level):
+    R, k, C = vals.shape
+    Q, _, p = D.shape
+    N0 = np.empty((p, p))
+    Nn = np.empty((p, p))
+    A = np.empty((p, p + C))
+    W = np.empty((p, p))
+    for r in range(R):
+        Dq = D[r % Q]
+        for a in range(p):
+            for b in range(a, p):
+                t = 0.0
+                for i in range(k):
+                    t += Dq[i, a] * w[r, i] * Dq[i, b]
+                N0[a, b] = t
+                N0[b, a] = t
+        for a in range(p):
+            for b in range(p):
+                Nn[a, b] = N0[a, b] / (np.sqrt(max(N0[a, a], 1e-300))
+                                       * np.sqrt(max(N0[b, b], 1e-300)))
+        # the highest degree its neighbours determine (terms 3 plane, 6, 10; 0 none)
+        if _chol_above(Nn, p, tol, W):
+            lev = p
+        else:
+            lev = 0
+            for L in (3, 6, 10):
+                if L >= p or not _chol_above(Nn, L, tol, W):
+                    break
+                lev = L
+        level[r] = lev
+        use = max(lev, 3)
+        # the normal equations of the terms used (the others pinned at 0), a touch of ridge
+        for a in range(p):
+            for b in range(p):
+                A[a, b] = N0[a, b] if (a < use and b < use) else 0.0
+            A[a, a] += 1e-9 if a < use else 1.0 + 1e-9
+            for c in range(C):
+                t = 0.0
+                if a < use:
+                    for i in range(k):
+                        t += Dq[i, a] * w[r, i] * vals[r, i, c]
+                A[a, p + c] = t
+        # Gaussian elimination with partial pivoting, then back substitution
+        for c in range(p):
+            piv = c
+            best = abs(A[c, c])
+            for a in range(c + 1, p):
+                if abs(A[a, c]) > best:
+                    best = abs(A[a, c])
+                    piv = a
+            if piv != c:
+                for b in range(p + C):
+                    t = A[c, b]
+                    A[c, b] = A[piv, b]
+                    A[piv, b] = t
+            for a in range(c + 1, p):
+                f = A[a, c] / A[c, c]
+                if f != 0.0:
+                    for b in range(c, p + C):
+                        A[a, b] -= f * A[c, b]
+        for c in range(C):
+            for a in range(p - 1, -1, -1):
+                t = A[a, p + c]
+                for b in range(a + 1, p):
+                    t -= A[a, b] * A[b, p + c]
+                A[a, p + c] = t / A[a, a]
+            out[r, c] = A[0, p + c]
+
+
+def local_solve(D, w, vals, tol=1e-6):
+    """The constant terms of weighted local polynomial fits, compiled: for each row ``r``
+    the design ``D[r % Q]`` ((Q, k, p) in units of the neighbour spacing), the weights
+    ``w[r]`` (R, k) and the values ``vals[r]`` (R, k, C); the degree of each fit is the
+    highest whose normalised normal equations have no eigenvalue below ``tol`` (none, 3, 6
+    or 10 terms; at least the plane's terms are solved), as
+    :func:`softplot.marks.neighbours.local_fit` chooses it. Returns ``(c0, level)``:
+    (R, C) the fitted value at each query point and (R,) int the terms used (0: none
+    determined)."""
+    vals = np.ascontiguousarray(vals, np.float64)
+    R, _, C = vals.shape
+    out = np.empty((R, C))
+    level = np.empty(R, np.int64)
+    _local_solve(np.ascontiguousarray(D, np.float64), np.ascontiguousarray(w, np.float64),
+                 vals, float(tol), out, level)
+    return out, level
+
+
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
 
@@ -751,6 +862,7 @@ def load() -> bool:
                          np.ones((1, 3, 3)), np.zeros((1, 3, 3)), (0.0, 1.0))
             cross_template(MarkShape("cross", length=5.0, width=1.0), np.zeros((1, 2)),
                            np.zeros((1, 2)), np.eye(2)[None], np.ones(1), (3, 3), np.ones(1))
+            local_solve(np.ones((1, 3, 3)), np.ones((1, 3)), np.ones((1, 3, 1)))
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path
             warnings.warn(f"softplot: compiled LSM kernel unavailable ({type(exc).__name__}: "
                           f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from softplot.marks import kernels
+
 __all__ = ["local_fit", "local_prediction", "outline", "position_affine"]
 
 
@@ -65,9 +67,37 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
         n_dev = np.asarray(n_dev, float).reshape(B, -1)
         spread = 1.4826 * np.median(n_dev, axis=1) + 1e-12  # (B,)
         w = w / (1.0 + (n_dev[:, j] / (3.0 * spread[:, None, None])) ** 2)  # (B, Q, k)
-        D = np.broadcast_to(D, (B,) + D.shape).reshape(B * Q, k, -1)
         w = w.reshape(B * Q, k)
     # else the same weights for every value set: one fit, its columns the sets' values
+    C = n_val.shape[-1]
+    if n_dev is not None:  # (B * Q, k, C)
+        vals = n_val[:, j].reshape(B * Q, k, C)
+    else:  # (Q, k, B * C)
+        vals = n_val[:, j].transpose(1, 2, 0, 3).reshape(Q, k, B * C)
+    if gradient or not kernels.ready():  # row r of a batch: design D[r % Q]
+        Dr = D if len(w) == Q else np.broadcast_to(D, (B,) + D.shape).reshape(B * Q, k, -1)
+        coef, level, DwT, N = _solve(Dr, w, vals)
+        c0 = coef[:, 0, :]
+    else:  # the same fits compiled, one pass per row (most of a batch was NumPy's overhead)
+        c0 = kernels.local_solve(D, w, vals)[0]
+    if batch:
+        if n_dev is not None:
+            return c0.reshape(B, Q, C)
+        return c0.reshape(Q, B, C).transpose(1, 0, 2)
+    if not gradient:
+        return c0
+    Ni = np.linalg.inv(N)
+    var = Ni @ np.matmul(DwT, DwT.transpose(0, 2, 1)) @ Ni  # coefficients, unit noise
+    grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
+    grad[level < 3] = np.nan
+    return c0, grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
+
+
+def _solve(D, w, vals):
+    """The weighted fits of :func:`local_fit` by NumPy: designs ``D`` (R, k, p), weights
+    ``w`` (R, k), values ``vals`` (R, k, C) (units of the neighbour spacing). Returns the
+    coefficients (R, p, C), the terms used (R,) (3 plane, 6 quadratic, 10 cubic, 0 none),
+    the masked weighted design transposed (R, p, k) and normal equations (R, p, p)."""
     # per query the highest degree its neighbours determine (a partial grid of a few rows
     # cannot carry a cubic in y): the terms of a degree whose normal equations are
     # ill-conditioned are dropped for that query; a plane that is not determined (collinear
@@ -99,24 +129,8 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     DwT = DwT0 * use[:, :, None]
     N = N0 * (use[:, :, None] * use[:, None, :]) + 1e-9 * np.eye(p)
     N[:, np.arange(p), np.arange(p)] += 1.0 - use
-    C = n_val.shape[-1]
-    if n_dev is not None:  # (B * Q, k, C)
-        vals = n_val[:, j].reshape(B * Q, k, C)
-    else:  # (Q, k, B * C)
-        vals = n_val[:, j].transpose(1, 2, 0, 3).reshape(Q, k, B * C)
     coef = np.linalg.solve(N, np.matmul(DwT, vals))  # (rows, p, columns)
-    if batch:
-        c0 = coef[:, 0, :]
-        if n_dev is not None:
-            return c0.reshape(B, Q, C)
-        return c0.reshape(Q, B, C).transpose(1, 0, 2)
-    if not gradient:
-        return coef[:, 0, :]
-    Ni = np.linalg.inv(N)
-    var = Ni @ np.matmul(DwT, DwT.transpose(0, 2, 1)) @ Ni  # coefficients, unit noise
-    grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
-    grad[level < 3] = np.nan
-    return coef[:, 0, :], grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
+    return coef, level, DwT, N
 
 
 def _smallest_eig_above(S, tol):
