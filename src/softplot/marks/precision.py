@@ -19,13 +19,20 @@ what the local fit may miss of a real deformation, a floor in film micrometres: 
 resolution it, not the measurement, dominates the departures). :func:`variance_factor`
 returns ``k^2``, at least 1: the covariances are only ever enlarged (a scan whose
 departures are smaller than its covariances predict keeps them).
+
+A small grid (fewer than :data:`MIN_MARKS` crosses: a Pentax 645's 3 x 3, a part of a 5 x 5)
+has too few neighbours for a local fit. There the crosses' departures are taken from the
+scan's global projective model instead (:func:`projective_prediction`: the residuals'
+weighted projection on the model's eight parameters, whose redundancy 2M - 8 the simulated
+``E_i`` carry); from :data:`MIN_GLOBAL_MARKS` crosses on.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["variance_factor", "DEFORMATION_FLOOR_UM", "MIN_MARKS"]
+__all__ = ["variance_factor", "projective_prediction", "DEFORMATION_FLOOR_UM", "MIN_MARKS",
+           "MIN_GLOBAL_MARKS"]
 
 #: what a local polynomial through the neighbours may miss of a real film deformation (um on
 #: the film; at 2400 dpi 0.2 um is 0.02 px, about the local cubic's departure on a 100 um
@@ -33,6 +40,14 @@ __all__ = ["variance_factor", "DEFORMATION_FLOOR_UM", "MIN_MARKS"]
 DEFORMATION_FLOOR_UM = 0.3
 #: the factor needs at least this many two-armed measured crosses (else 1)
 MIN_MARKS = 12
+#: below :data:`MIN_MARKS`, the factor from the global projective model needs this many
+#: (redundancy 2M - 8 >= 4)
+MIN_GLOBAL_MARKS = 6
+#: the deformation floor (um on the film) of the factor from the global projective model: what
+#: a projective transform through a small grid leaves of a smooth film deformation (2-3 um
+#: over a 6 x 4.5 film's 3 x 3 crosses), which the crosses' departures carry besides their
+#: own errors
+GLOBAL_DEFORMATION_FLOOR_UM = 2.5
 #: simulated error draws for the expected departures
 DRAWS = 24
 #: the largest share of the departure ratios left out (crosses the outlier test kept but
@@ -45,8 +60,42 @@ _TRIMMED_MEAN = (1.0 - TRIM * (1.0 - np.log(TRIM))) / (1.0 - TRIM)
 MAX_FACTOR = 16.0
 
 
+def projective_prediction(H: np.ndarray):
+    """A ``predict`` for :func:`variance_factor` on a small grid: the residuals' weighted
+    least-squares projection on the eight parameters of the projective transform ``H``
+    (3 x 3, film mm -> pixel) at the crosses, i.e. the part of the residuals a refit of the
+    global model would take up. ``predict(film, r, sigma=None)``: ``film`` (M, 2) mm, ``r``
+    (M, 2) or (B, M, 2) px residuals, ``sigma`` (M,) px; returns the same shape as ``r``."""
+    H = np.asarray(H, float)
+
+    def predict(film, r, sigma=None):
+        film = np.asarray(film, float).reshape(-1, 2)
+        X, Y = film[:, 0], film[:, 1]
+        w = H[2, 0] * X + H[2, 1] * Y + H[2, 2]
+        u = (H[0, 0] * X + H[0, 1] * Y + H[0, 2]) / w
+        v = (H[1, 0] * X + H[1, 1] * Y + H[1, 2]) / w
+        one, zero = np.ones_like(X), np.zeros_like(X)
+        # d(u, v) / d(h00 h01 h02 h10 h11 h12 h20 h21): rows u_1..u_M, v_1..v_M
+        Ju = np.column_stack([X, Y, one, zero, zero, zero, -u * X, -u * Y]) / w[:, None]
+        Jv = np.column_stack([zero, zero, zero, X, Y, one, -v * X, -v * Y]) / w[:, None]
+        A = np.vstack([Ju, Jv])
+        s = np.ones(len(film)) if sigma is None else np.asarray(sigma, float)
+        wt = np.concatenate([1.0 / s, 1.0 / s])
+        Aw = A * wt[:, None]
+        c = np.linalg.norm(Aw, axis=0)  # columns of very different scales (mm, px, px mm)
+        A, Aw = A / c, Aw / c
+        P = A @ np.linalg.pinv(Aw) * wt[None, :]  # (2M, 2M): fitted values from the data
+        rr = np.asarray(r, float)
+        flat = np.concatenate([rr[..., 0], rr[..., 1]], -1)  # (..., 2M)
+        fit = flat @ P.T
+        m = len(film)
+        return np.stack([fit[..., :m], fit[..., m:]], -1)
+
+    return predict
+
+
 def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
-                    px_per_mm: float, seed: int = 0) -> float:
+                    px_per_mm: float, seed: int = 0, H: np.ndarray | None = None) -> float:
     """The variance factor ``k^2 >= 1`` of a scan's measured crosses (module docstring).
 
     Parameters
@@ -65,14 +114,22 @@ def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
         Scan resolution (the deformation floor's unit).
     seed : int
         Of the simulated errors (the result is deterministic).
+    H : (3, 3), optional
+        The global film mm -> pixel model the residuals are taken against: with fewer than
+        :data:`MIN_MARKS` crosses the departures are taken from it
+        (:func:`projective_prediction`) instead of ``predict``; without it such a scan gets 1.
     """
     film = np.asarray(film, float).reshape(-1, 2)
     r = np.asarray(r, float).reshape(-1, 2)
     C = np.asarray(cov, float).reshape(-1, 2, 2)
     ok = np.isfinite(r).all(1) & np.isfinite(C.reshape(-1, 4)).all(1)
     film, r, C = film[ok], r[ok], C[ok]
+    floor_um = DEFORMATION_FLOOR_UM
     if len(film) < MIN_MARKS:
-        return 1.0
+        if H is None or len(film) < MIN_GLOBAL_MARKS:
+            return 1.0
+        predict = projective_prediction(H)
+        floor_um = GLOBAL_DEFORMATION_FLOOR_UM
     try:
         L = np.linalg.cholesky(C)
     except np.linalg.LinAlgError:
@@ -83,7 +140,7 @@ def variance_factor(film: np.ndarray, r: np.ndarray, cov: np.ndarray, predict,
     z = np.random.default_rng(seed).standard_normal((DRAWS, len(film), 2))
     e = np.einsum("nij,bnj->bni", L, z)
     E = np.sum(np.sum((e - predict(film, e, sigma=sig)) ** 2, 2), 0) / DRAWS
-    b = 2.0 * (DEFORMATION_FLOOR_UM * 1e-3 * px_per_mm) ** 2  # two axes
+    b = 2.0 * (floor_um * 1e-3 * px_per_mm) ** 2  # two axes
     q = np.sort(d2 / (E + b))
     keep = q[: max(int(np.floor((1.0 - TRIM) * len(q))), 1)]
     k2 = float(np.mean(keep) / _TRIMMED_MEAN)

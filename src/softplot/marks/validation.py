@@ -132,7 +132,7 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     # the errors the crosses' own fits cannot see, from their departures from each other
     two = arms == 2
-    vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm)
+    vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
     m.cov = cov * vfac
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vfac)
