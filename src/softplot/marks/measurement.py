@@ -124,7 +124,7 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
             pr.s0 = s1  # the blur later refits and rescues start from
     tv = fine.scene_tv
     shape_from_neighbours(scan, shape, pr.film[idx], c0[idx], pred[idx], fine, s0, init_err,
-                          sign, rules, max_shift, ppm, scene_tv=tv)
+                          sign, rules, max_shift, ppm, scene_tv=tv, A0=A0[idx])
     other_sizes(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
                 max_shift, scene_tv=tv)
     N = len(pr.film)
@@ -189,7 +189,7 @@ def measure_marks(scan, shapes, start: np.ndarray, A: np.ndarray, s0: float,
 
 
 def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, rules,
-                           max_shift, ppm, z_max=2.5, scene_tv=0):
+                           max_shift, ppm, z_max=2.5, scene_tv=0, A0=None):
     """Refit marks whose shape was pulled by the scene, with the shape of their neighbours.
 
     A cross's affine (scale, rotation, shear of the film and scanner at that place) varies
@@ -204,9 +204,17 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     at the accepted marks' median (:func:`held_blur`); the refit replaces the first when
     accepted. The spread adapts to the scan: where the prediction is the
     weaker of the two (a 100 um deformation at 2400 dpi, low noise) only the marks the scene
-    really pulled stand out. Modifies ``fine`` in place.
+    really pulled stand out. Where fewer than 4 marks were accepted (the neighbours predict
+    no affine) every mark is refitted with ``A0`` (N, 2, 2), the global model's affine; those
+    refits are kept only if they lie on a grid (:func:`on_a_grid`). Modifies ``fine`` in
+    place.
     """
     cons, lev, near = position_affine(film, fine.xy, fine.ok, ppm, with_position=True)
+    # too few accepted for the neighbours to say (tiny crosses whose free affines scatter by
+    # 40 % and 20 degrees): the global model's affine, and the refits judged as a grid
+    few = A0 is not None and not np.isfinite(cons).all((1, 2)).any()
+    if few:
+        cons = np.array(A0, float)
     have = np.isfinite(cons).all((1, 2))
     fin = have & np.isfinite(fine.A).all((1, 2))
     ref = fin & fine.ok
@@ -249,6 +257,8 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
         at = neighbours_place(film[m], fine.xy[m])[np.searchsorted(m, k)]
         worse = np.hypot(*(f2.xy[both] - at).T) > np.hypot(*(fine.xy[k] - at).T)
         f2.ok[np.where(both)[0][worse]] = False
+    if few and not on_a_grid(film[redo], f2.xy, f2.ok, f2.sigma):
+        return
     for j, i in enumerate(redo):
         if f2.ok[j]:
             fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
@@ -257,6 +267,29 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
                 f2.score[j], f2.cnr[j], True, "")
             if fine.gain is not None and f2.gain is not None:
                 fine.gain[i] = f2.gain[j]
+
+
+#: refits with the global model's affine are a grid when the median distance of their
+#: positions from a projective model fitted to them is at most this many times their median
+#: precision (a median of |r| of about 1.2 sigma for a 2-D Gaussian; fits locked on the
+#: texture of a faint scan lie tens of sigmas off)
+GRID_FIT_K = 3.0
+#: ... and when at least this many are accepted (a projective model of 8 parameters is
+#: judged by 8 marks' 16 coordinates)
+GRID_FIT_MIN = 8
+
+
+def on_a_grid(film: np.ndarray, xy: np.ndarray, ok: np.ndarray, sigma: np.ndarray) -> bool:
+    """Do the accepted fits ``ok`` (M,) bool (positions ``xy`` (M, 2) pixel system, of marks
+    at ``film`` (M, 2) mm, precision ``sigma`` (M,) px) lie on a projective grid: at least
+    :data:`GRID_FIT_MIN` of them, their median distance from the model fitted to them at
+    most :data:`GRID_FIT_K` times their median precision?"""
+    ok = np.asarray(ok, bool) & np.isfinite(xy).all(1) & np.isfinite(sigma)
+    if ok.sum() < GRID_FIT_MIN:
+        return False
+    H = grid.projective_fit(film[ok], xy[ok])
+    r = np.hypot(*(xy[ok] - grid.apply_h(H, film[ok])).T)
+    return bool(np.median(r) <= GRID_FIT_K * float(np.median(sigma[ok])))
 
 
 def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_shift,
