@@ -91,6 +91,11 @@ class LSMResult:
         The contrast of each part alone (mark minus background, as ``gain``) at the fitted
         geometry: near ``gain`` where the part is there, near 0 where it is not (a cross's
         bar that faded away); NaN where the part has no weighted pixels.
+    snr : (N,) float
+        Matched-filter signal-to-noise ratio ``||M - B|| / noise``: the fitted mark's
+        contrast summed over all its pixels (the fitted background removed, the norm over
+        the fit's pixels, grey units over grey units). Unlike :attr:`cnr` (per pixel) it
+        grows with the mark's length and width: the evidence a thin, faint mark gives.
     """
 
     centre: np.ndarray
@@ -109,6 +114,7 @@ class LSMResult:
     level: np.ndarray
     cov_white: np.ndarray | None = None
     part_gain: np.ndarray | None = None
+    snr: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -859,4 +865,5 @@ def lsm(
         level=p[:, 7] + p[:, 8],
         cov_white=cov_white,
         part_gain=part_gain,
+        snr=np.sqrt((dM.astype(float) ** 2).sum(1)) / noise,
     )

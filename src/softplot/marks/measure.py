@@ -19,7 +19,8 @@ from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import concurrent, thread_map
 
-__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma"]
+__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma",
+           "faint"]
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -83,6 +84,13 @@ class AcceptRules:
     #: not there (:func:`lone_bar`), one whose halves have more than ``bar_present`` is
     bar_absent: float = 0.5
     bar_present: float = 0.7
+    #: a faint mark below ``min_cnr`` or ``min_score`` is still there when its matched-filter
+    #: signal-to-noise (:attr:`softplot.marks.lsm.LSMResult.snr`, summed over its pixels) is
+    #: at least ``min_snr`` and its score at least ``faint_score`` x the score noise alone
+    #: leaves a perfect fit (:func:`faint`): it looks like the mark as far as the noise lets
+    #: it (a thin, low-contrast reseau: each cross weak per pixel, strong over its length)
+    min_snr: float = 5.0
+    faint_score: float = 0.75
 
 
 @dataclass
@@ -508,6 +516,9 @@ def _replace(res: LSMResult, at: np.ndarray, new: LSMResult, frm: np.ndarray) ->
         if f.name == "iterations":
             kw[f.name] = max(a, new.iterations)
             continue
+        if a is None or getattr(new, f.name) is None:
+            kw[f.name] = None
+            continue
         a = a.copy()
         b = getattr(new, f.name)
         a[at] = b[frm]
@@ -541,8 +552,9 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
     finite = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.gain)
     fail(~finite, "fit failed")
     fail(np.sign(res.gain) != sign, "no mark of the expected polarity")
-    fail(res.cnr < rules.min_cnr, "contrast too low")
-    fail(res.score < rules.min_score, "does not look like the mark")
+    weak = faint(res, rules)
+    fail((res.cnr < rules.min_cnr) & ~weak, "contrast too low")
+    fail((res.score < rules.min_score) & ~weak, "does not look like the mark")
     parts_ok = (res.support >= rules.min_part_support).sum(1)
     need = min(rules.min_parts, res.support.shape[1])
     fail(parts_ok < need, "mark partly hidden")
@@ -566,6 +578,21 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
     s_med = float(np.median(res.s[ok])) if ok.any() else s0
     fail(res.s > 3.0 * s_med + 1.5, "too blurred")
     return ok, reason
+
+
+def faint(res: LSMResult, rules: AcceptRules) -> np.ndarray:
+    """(N,) bool: fits that are a faint mark, evident over its pixels though weak per pixel.
+
+    The matched-filter signal-to-noise ``snr`` is at least ``rules.min_snr``, and the score
+    at least ``rules.faint_score`` x ``snr / sqrt(snr^2 + npix)``, the correlation of a
+    perfect fit with white noise of the fit's own level over its ``npix`` pixels: the residual
+    is noise, not scene structure the mark does not explain.
+    """
+    if res.snr is None:
+        return np.zeros(len(res.centre), bool)
+    snr = np.nan_to_num(res.snr, nan=0.0)
+    expected = snr / np.sqrt(snr**2 + np.maximum(res.npix, 1))
+    return (snr >= rules.min_snr) & (res.score >= rules.faint_score * expected)
 
 
 def _chunks(idx, sets, chunk):
