@@ -30,8 +30,8 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "rescue", "lone_arms", "median_gain", "extrapolation",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX", "PATTERN_OUTLIER_MM", "RESCUE_MIN_GAIN",
-           "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX"]
+           "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_PX", "PATTERN_OUTLIER_MM",
+           "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -58,6 +58,10 @@ RESCUE_MIN_GAIN = 0.1
 RESCUE_MAX_SIGMA_RATIO = 2.0
 #: the least standard deviation (px) of a lone bar's position along it (the prediction's)
 LONE_ARM_ALONG_MIN_PX = 0.5
+#: the largest standard deviation (px, reported: after the scan's variance factor) of a lone
+#: bar's position along it: on scans whose neighbours' predictions are poorer, a lone bar's
+#: point is a guess along the bar (the sweep's busy low-dpi renders: 2-4 px, and 2-5 px off)
+LONE_ARM_ALONG_MAX_PX = 1.75
 #: lone bars are measured where at least this many crosses are: a plane through four
 #: neighbours and one to spare predicts their position (a 3 x 3 grid with three
 #: one-armed crosses has six)
@@ -126,13 +130,15 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
     arms = np.where(np.array(status) == "measured", 2, 0)
-    lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
-              pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm)
-    if (arms == 1).any():
-        residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     # the errors the crosses' own fits cannot see, from their departures from each other
+    # (of the two-armed crosses only: the lone bars below do not change it)
     two = arms == 2
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
+    lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
+              pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
+              along_max=LONE_ARM_ALONG_MAX_PX / np.sqrt(vfac))
+    if (arms == 1).any():
+        residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vfac)
@@ -431,14 +437,17 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
-               max_shift, fitted, blur, fine, ppm):
+               max_shift, fitted, blur, fine, ppm, along_max=np.inf):
     """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
     (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
     their neighbours predict; along the bar the position is that prediction, with the
     per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
     predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
     bar's contrast to noise, or its contrast, must be at least half the measured crosses'
-    median (the noise under a lone bar is not always the crosses'). ``cov``:
+    median (the noise under a lone bar is not always the crosses'). Where that standard
+    deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_PX` over the root of the
+    scan's variance factor, which scales it later) no bar is measured: the point would be
+    the neighbours' guess along the bar, not a measurement. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
     st = np.array(status)
@@ -451,6 +460,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
                                                      n_sigma=sigma[meas])
     loo = r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])
     along = max(float(np.sqrt(np.mean(loo**2))), LONE_ARM_ALONG_MIN_PX)
+    if along > along_max:
+        return
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
