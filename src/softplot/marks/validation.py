@@ -6,10 +6,11 @@ more than a robust threshold, or by more than :data:`OUTLIER_K` times what its o
 the prediction's error lead one to expect (:func:`departure_model`), is "rejected"
 (:func:`reject_outliers`); rejected and refused crosses are fitted again from the neighbours'
 prediction, once without each half-arm (:func:`rescue`), and, failing that, as a lone bar
-(:func:`lone_arms`). Fiducials, too few for a neighbourhood, are tested against the
-pattern's model (:func:`validate_pattern`). The hand-over is :class:`Validation`; the
-orchestrator refuses a scan whose measured crosses lie farther than :data:`MAX_GRID_RMS_MM`
-(rms) off any projective grid.
+(:func:`lone_arms`); crosses the scan's edge cuts by one tip are measured last from their
+other three half-arms (:func:`edge_crosses`). Fiducials, too few for a neighbourhood, are
+tested against the pattern's model (:func:`validate_pattern`). The hand-over is
+:class:`Validation`; the orchestrator refuses a scan whose measured crosses lie farther than
+:data:`MAX_GRID_RMS_MM` (rms) off any projective grid.
 """
 
 from __future__ import annotations
@@ -27,11 +28,12 @@ from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "lone_arms", "median_gain", "extrapolation",
+           "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "median_gain",
+           "extrapolation",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_PX", "PATTERN_OUTLIER_MM",
-           "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX"]
+           "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX", "EDGE_CUT_MAX"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -66,6 +68,9 @@ LONE_ARM_ALONG_MAX_PX = 1.75
 #: neighbours and one to spare predicts their position (a 3 x 3 grid with three
 #: one-armed crosses has six)
 LONE_ARM_MIN_MEASURED = 5
+#: a cross whose only tip beyond the scan's edge (or within a pixel of it) leaves by at most
+#: this share of its half-arm is measured from its other three half-arms (:func:`edge_crosses`)
+EDGE_CUT_MAX = 0.25
 
 
 @dataclass
@@ -140,6 +145,9 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
+    # crosses the scan's edge cuts by one tip: measured last, so that they feed no model
+    got = edge_crosses(scan, pr, m, arms, Hm, vfac, floor_px, dep, rules)
+    residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vfac)
 
@@ -472,3 +480,95 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
             status[i], reason[i], arms[i] = "measured", "", 1
+
+
+def edge_cut_part(xy, J, ppm, shape, width, height):
+    """The half-arm by which each cross leaves the scan, where it is the only one and its tip
+    leaves by at most :data:`EDGE_CUT_MAX` of the half-arm; -1 elsewhere (N,) int (0: +u,
+    1: +v, 2: -u, 3: -v of the mark frame, as :func:`~softplot.marks.measure.measure`'s
+    ``drop_part``). ``xy`` (N, 2) the crosses' positions and ``J`` (N, 2, 2) the model's
+    d pixel / d film mm there (pixel system), ``shape`` (px) the cross; a tip leaves where it
+    lies less than a pixel inside the scan's ``width`` x ``height`` (as the test of what is
+    fitted, :meth:`~softplot.marks.prediction.Prediction.inside`)."""
+    ext = 0.5 * shape.length + 0.5 * shape.width
+    # tips along film +x, -x, +y, -y: the mark frame's +u, -u, -v, +v
+    d = np.stack([J[:, :, 0], -J[:, :, 0], J[:, :, 1], -J[:, :, 1]], 1) / ppm  # (N, 4, 2)
+    tip = np.asarray(xy, float)[:, None, :] + ext * d
+    hi = np.array([width - 1.5, height - 1.5])
+    over = np.maximum(np.max(np.maximum(0.5 - tip, tip - hi), -1), 0.0)  # (N, 4) px
+    k = np.argmax(over, 1)
+    arm = ext * np.hypot(*d[np.arange(len(k)), k].T)
+    one = ((over > 0).sum(1) == 1) & (over.max(1) <= EDGE_CUT_MAX * arm)
+    return np.where(one, np.array([0, 2, 3, 1])[k], -1)
+
+
+def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, departure,
+                 rules) -> np.ndarray:
+    """Crosses not fitted because the scan's edge cuts them (:func:`edge_cut_part`: one
+    half-arm's tip out by a little), measured from their other three half-arms, after the
+    validation: from the position their measured neighbours predict (the model ``Hm`` plus
+    a local quadratic of the residuals), with the affine their positions predict held
+    (:func:`position_affine`, else the model's) and the blur held. Accepted as the rescue
+    accepts (:func:`rescue`: within the outlier test's threshold of the prediction, as
+    precise and as contrasted). Measured last, they feed no neighbour's prediction, model or
+    variance factor; their covariance is scaled by ``vfac``. Updates ``m`` and ``arms`` in
+    place; returns the indices measured."""
+    film, ppm, shape = pr.film, pr.px_per_mm, m.shape
+    st = np.array(m.status)
+    fitted = np.zeros(len(film), bool)
+    fitted[m.fitted] = True
+    meas = np.where(arms == 2)[0]
+    q = np.where((st == "missing") & ~fitted)[0]
+    if q.size == 0 or meas.size < 8 or shape is None or shape.kind != "cross":
+        return np.zeros(0, int)
+    sigma = m.sigma()
+    r = m.xy - grid.apply_h(Hm, film)
+    target = grid.apply_h(Hm, film[q]) + local_fit(film[q], film[meas], r[meas], 16, 2,
+                                                     n_sigma=sigma[meas])
+    part = edge_cut_part(target, pr.J[q], ppm, shape, sc.width, sc.height)
+    keep = part >= 0
+    q, target, part = q[keep], target[keep], part[keep]
+    if q.size == 0:
+        return q
+    held, _ = position_affine(film, m.xy, arms == 2, ppm)
+    A = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], pr.A[q])
+    f = measure(sc, shape, target, A, pr.s0, pr.init_err, pr.sign, rules, anchor=target,
+                max_shift=pr.max_shift, drop_part=part, fit_shape=False,
+                scene_tv=m.scene_tv, blur=held_blur(m.fine))
+    # the outline's spread of the departures (the crosses at the scan's edge extrapolate)
+    edge = outline(film, arms == 2)
+    dev = np.hypot(*(r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])).T)
+    sp = robust_spread(dev, edge[meas])
+    s_out = float(sp[edge[meas]][0]) if edge[meas].any() else float(sp[0])
+    sg = f.sigma
+    exp = (None if departure is None
+           else expected_departure(departure, sg, np.ones(q.size, bool)))
+    # beyond the grid's outline the neighbours' prediction extrapolates further than on it
+    thr = outlier_threshold(s_out, np.broadcast_to(floor_px, (len(film),))[q], sg, exp)
+    thr = thr * _reach_beyond(film[q], film[meas], sigma[meas], edge[meas])
+    good = f.ok & (np.hypot(*(f.xy - target).T) <= thr)
+    good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * float(np.median(
+        sigma[meas]))
+    gain_ref = median_gain(m.fine)
+    if gain_ref is not None and f.gain is not None:
+        good &= np.abs(np.nan_to_num(f.gain)) >= RESCUE_MIN_GAIN * gain_ref
+    got = q[good]
+    m.xy[got], m.cov[got], m.cov_white[got] = f.xy[good], f.cov[good] * vfac, f.cov_white[good]
+    m.score[got], m.cnr[got] = f.score[good], f.cnr[good]
+    for i in got:
+        m.status[i], m.reason[i], arms[i] = "measured", "", 2
+    return got
+
+
+def _reach_beyond(q_film, film, sigma, edge, draws=16):
+    """How much farther the neighbours' prediction of marks at ``q_film`` (Q, 2) mm (from the
+    measured marks at ``film`` (M, 2) mm, local quadratic, as :func:`edge_crosses`) reaches
+    than the leave-one-out predictions of the measured marks on the grid's outline
+    (``edge`` (M,) bool): the square root of the ratio of their variances for unit noise on
+    the marks (``draws`` simulated sets), from 1 to :data:`EXTRAPOLATION_MAX` (Q,)."""
+    z = np.random.default_rng(0).standard_normal((draws, len(film), 2))
+    pq = local_fit(q_film, film, z, 16, 2, n_sigma=sigma)
+    pm = local_prediction(film, z, sigma=sigma)
+    g = np.mean(pm**2, axis=(0, 2))
+    ref = float(np.median(g[edge])) if edge.any() else float(np.median(g))
+    return np.clip(np.sqrt(np.mean(pq**2, axis=(0, 2)) / ref), 1.0, EXTRAPOLATION_MAX)
