@@ -109,7 +109,8 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
         return measure(scan, shape, c0[idx], A0[idx], s, init_err, sign, rules,
                        anchor=pred[idx], max_shift=max_shift,
                        scene_tv=JOINT_PASSES if scene == "joint" else 0,
-                       auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=busy_scene)
+                       auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=busy_scene,
+                       contrast=True)
 
     fine = fit(s0)
     held = held_blur(fine)
