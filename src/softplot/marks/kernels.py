@@ -22,6 +22,9 @@ the covariance, summed directly over the few lags it uses instead of by FFTs) an
 :func:`cross_template` (the joint scene's template). Most of a fit of a few marks was NumPy's
 per-call overhead; these passes hold the GIL only to start
 (``tests/test_marks_speed_accuracy.py::test_compiled_lsm_step_gather_and_correlation_match_numpy``).
+:func:`fine_steps` runs LSM's whole fine stage in one compiled loop, mark by mark (the same
+steps; between them no Python, so a second thread's fits run alongside;
+``tests/test_marks_speed_accuracy.py::test_compiled_fine_stage_is_the_step_by_step_loop``).
 
 :func:`local_solve` fits the neighbours' local polynomials of
 :func:`softplot.marks.neighbours.local_fit` (film mm in units of the neighbour spacing), one
@@ -44,7 +47,8 @@ import numpy as np
 from softplot.marks.template import _ZSAT, _Phi_phi
 
 __all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
-           "cross_template", "corr_sums", "half_arms", "local_solve", "load", "ready"]
+           "cross_template", "corr_sums", "half_arms", "local_solve", "fine_steps", "load",
+           "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -668,6 +672,125 @@ def advance(Ninv, g, wsum, wrr, nact, p):
     cov = np.empty((n, 2, 2))
     _advance(Ninv, g, wsum, float(nact), wrr, p, dc, sig, cov, s0sq)
     return dc, sig, cov, s0sq
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def _jtj(J, Jt, Nm, npx):
+    # J^T J of one mark over its first ``npx`` pixels (the rest are padding, J = 0: left
+    # out, the sums do not depend on the padding, i.e. on which marks share the gather);
+    # float32 sums, as BLAS's product in weigh, by rows of J^T
+    K = J.shape[2]
+    for j in range(npx):
+        for a in range(K):
+            Jt[a, j] = J[0, j, a]
+    for a in range(K):
+        for b in range(a, K):
+            s = _ZERO
+            for j in range(npx):
+                s += Jt[a, j] * Jt[b, j]
+            Nm[0, a, b] = s
+            Nm[0, b, a] = s
+
+
+@njit(fastmath=False, cache=True, nogil=True)
+def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows, it0,
+          max_iter, tol, conv, M, T, Tu, Tv, U, V, R, WR, W, cov, s0sq, h, done, last_it,
+          fail):
+    n, npx = X.shape
+    K = p.shape[1]
+    nact = 0
+    for a in range(K):
+        if active[a]:
+            nact += 1
+    # one mark's buffers (its rows copied once: contiguous for the step kernels)
+    x = np.empty((1, npx), np.float32)
+    y = np.empty((1, npx), np.float32)
+    gr = np.empty((1, npx), np.float32)
+    sb = np.empty((1, npx), np.float32)
+    wp = np.empty((1, npx), np.float32)
+    qs = np.empty((1, npx), np.float32)
+    cc = np.empty((1, npx), np.float32)
+    m1 = np.empty((1, npx), np.float32)
+    t1 = np.empty((1, npx), np.float32)
+    tu = np.empty((1, npx), np.float32)
+    tv = np.empty((1, npx), np.float32)
+    u1 = np.empty((1, npx), np.float32)
+    v1 = np.empty((1, npx), np.float32)
+    r1 = np.empty((1, npx), np.float32)
+    wr1 = np.empty((1, npx), np.float32)
+    w1 = np.empty((1, npx), np.float32)
+    vd = np.empty((1, npx), np.bool_)
+    J = np.empty((1, npx, K), np.float32)
+    q = np.empty((1, K), np.float32)
+    pb = np.empty(1)
+    g = np.empty((1, K))
+    rss, wsum, dc, sig, s0 = np.empty(1), np.empty(1), np.empty(1), np.empty(1), np.empty(1)
+    Nm = np.empty((1, K, K))
+    Ninv = np.empty((1, K, K))
+    N2 = np.empty((1, 2, K), np.float32)
+    cv = np.empty((1, 2, 2))
+    h1 = np.empty((1, 2, npx), np.float32)
+    ok = np.empty(1, np.bool_)
+    Jt = np.empty((K, npx), np.float32)
+    for i in rows:
+        x[0], y[0], gr[0], sb[0], wp[0], qs[0], cc[0] = X[i], Y[i], G[i], S[i], Wp[i], Qs[i], Cc[i]
+        vd[0] = valid[i]
+        nv = 0  # the pixels up to the last valid one
+        for j in range(npx):
+            if vd[0, j]:
+                nv = j + 1
+        pi = p[i:i + 1]
+        for it in range(it0, max_iter + 1):
+            rob = robust and it > 1
+            for a in range(K):
+                q[0, a] = np.float32(pi[0, a])
+            pb[0] = pi[0, 8]
+            _kernel(x, y, sb, qs, q, length, width, m1, t1, tu, tv, u1, v1, J)
+            _weigh(gr, m1, vd, wp, cc, sb, x, y, qs, q, pb, rob, r1, wr1, w1, J, g, rss, wsum)
+            _jtj(J, Jt, Nm, nv)
+            _invert(Nm, g, active, Ninv, ok)
+            if not ok[0]:  # a vanishing pivot: this step and the rest by NumPy
+                fail[i] = it
+                break
+            _advance(Ninv, g, wsum, nact, rss, pi, dc, sig, cv, s0)
+            for a in range(2):
+                for b in range(K):
+                    N2[0, a, b] = np.float32(Ninv[0, a, b])
+            _influence(N2, J, h1)
+            M[i], T[i], Tu[i], Tv[i], U[i], V[i] = m1[0], t1[0], tu[0], tv[0], u1[0], v1[0]
+            R[i], WR[i], W[i], h[i] = r1[0], wr1[0], w1[0], h1[0]
+            cov[i] = cv[0]
+            s0sq[i] = s0[0]
+            last_it[i] = it
+            if (rob and it > 2) or not robust:
+                sg = 0.0 if np.isnan(sig[0]) else sig[0]
+                if dc[0] < max(tol, conv * sg):
+                    done[i] = True
+                    break
+
+
+def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol, conv, last,
+               converged):
+    """The fine stage of ``lsm.lsm`` for the crosses ``rows`` from its step ``it0`` on, one
+    mark at a time in one compiled pass: each step :func:`cross_model`, :func:`weigh`,
+    :func:`invert`, :func:`advance` and :func:`influence` as ``lsm._step`` calls them (the
+    normal equations summed in float64), the robust weights from step 2, the convergence
+    test ``lsm._converged`` (``conv`` x sigma or ``tol``) from step 3 (every step without
+    ``robust``), up to ``max_iter``. Updates ``p`` (N, 12), ``last`` (lsm's state of each
+    mark's last step) and ``converged`` in place. Returns ``(last_it, fail)`` (N,) int: the
+    last step taken (0: none) and, where a pivot vanished, the step to be taken again by
+    NumPy (else -1)."""
+    n = len(p)
+    last_it = np.zeros(n, np.int64)
+    fail = np.full(n, -1, np.int64)
+    c = np.ascontiguousarray
+    X, Y, G, valid, S, Wp, Qs, Cc = (c(a) for a in data)
+    L = last
+    _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, c(active, np.bool_), _f4(length), _f4(width),
+          bool(robust), c(rows, np.int64), int(it0), int(max_iter), float(tol), float(conv),
+          L["M"], L["T"], L["Tu"], L["Tv"], L["u"], L["v"], L["r"], L["w_rob"], L["w"],
+          L["cov"], L["s0sq"], L["h"], converged, last_it, fail)
+    return last_it, fail
 
 
 @njit(fastmath=True, cache=True, nogil=True)

@@ -435,6 +435,70 @@ def _step(p, data, shape, active, robust, init=False, prior=None):
     return dc, sig, state
 
 
+def _fine_stage(p, data, shape, full, robust, init, max_iter, tol, converged):
+    """The fine stage of :func:`lsm`: up to ``max_iter`` steps (:func:`_step`) of every mark
+    until it has converged (:func:`_converged`, from step 3 with ``robust``, whose weights
+    start at step 2), the first with ``init``. Crosses step by the compiled loop
+    (:func:`softplot.marks.kernels.fine_steps`, the same steps mark by mark) after a first
+    NumPy step where ``init``. Updates ``p`` and ``converged`` in place; returns each mark's
+    state at its last step (dict of arrays over the marks) and the last step taken."""
+    n = len(p)
+    todo = np.arange(n)
+    last = None
+    it0 = 1
+    if shape.kind == "cross" and kernels.ready():
+        if init:  # the radiometry's regression and the first step by NumPy
+            last = _steps(p, data, shape, full, robust, 1, 1, tol, todo, None, converged, True)[0]
+            todo = todo[~converged]
+            it0 = 2
+        else:
+            last = _state_arrays(n, data[0].shape[1])
+        if todo.size == 0 or max_iter < it0:
+            return last, min(it0 - 1, max_iter)
+        last_it, fail = kernels.fine_steps(p, data, shape.length, shape.width, full, robust,
+                                           todo, it0, max_iter, tol, CONVERGED, last,
+                                           converged)
+        it = int(last_it.max())
+        for i in np.where(fail >= 0)[0]:  # a vanishing pivot: the pseudo-inverse's steps
+            it = max(it, _steps(p, data, shape, full, robust, int(fail[i]), max_iter, tol,
+                                np.array([i]), last, converged, False)[1])
+        return last, it
+    return _steps(p, data, shape, full, robust, 1, max_iter, tol, todo, None, converged, init)
+
+
+def _state_arrays(n, npx):
+    """Empty state of ``n`` marks of ``npx`` gathered pixels as :func:`_step` returns it."""
+    f4 = np.float32
+    last = {k: np.empty((n, npx), f4) for k in ("M", "T", "u", "v", "r", "w_rob", "w")}
+    last.update(cov=np.empty((n, 2, 2)), s0sq=np.empty(n), Tu=np.empty((n, npx), f4),
+                Tv=np.empty((n, npx), f4), h=np.empty((n, 2, npx), f4))
+    return last
+
+
+def _steps(p, data, shape, full, robust, it_from, max_iter, tol, todo, last, converged, init):
+    """Steps ``it_from`` .. ``max_iter`` of :func:`_fine_stage` by NumPy (:func:`_step`) for
+    the marks ``todo``; ``init`` on step 1. Returns ``(last, it)``."""
+    n = len(p)
+    it = it_from - 1
+    for it in range(it_from, max_iter + 1):
+        rob = robust and it > 1
+        sub = data if todo.size == n else tuple(a[todo] for a in data)
+        q = p[todo]
+        dc, sig, st = _step(q, sub, shape, full, robust=rob, init=(it == 1 and init))
+        p[todo] = q
+        if last is None:
+            last = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in st.items()}
+        for k, v in st.items():
+            last[k][todo] = v
+        if (rob and it > 2) or not robust:
+            done = _converged(dc, sig, tol)
+            converged[todo[done]] = True
+            todo = todo[~done]
+            if todo.size == 0:
+                break
+    return last, it
+
+
 def _converged(dc, sig, tol):
     """Marks whose centre update ``dc`` (px) is below ``tol`` or :data:`CONVERGED` times
     their centre's standard deviation ``sig`` (px)."""
@@ -769,25 +833,8 @@ def lsm(
     # fine stage: all parameters, tight margin around the mark, robust weights
     data = gather(2.5 * s0 + 1.25)
     converged = np.zeros(n, bool)
-    todo = np.arange(n)
-    it = 0
-    last = None  # each mark's state at its last step (the solution to within 0.2 sigma)
-    for it in range(1, max_iter + 1):
-        rob = robust and it > 1
-        sub = data if todo.size == n else tuple(a[todo] for a in data)
-        q = p[todo]
-        dc, sig, st = _step(q, sub, shape, full, robust=rob, init=(it == 1 and s_cap <= s0))
-        p[todo] = q
-        if last is None:
-            last = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in st.items()}
-        for k, v in st.items():
-            last[k][todo] = v
-        if (rob and it > 2) or not robust:
-            done = _converged(dc, sig, tol)
-            converged[todo[done]] = True
-            todo = todo[~done]
-            if todo.size == 0:
-                break
+    # each mark's state at its last step (the solution to within 0.2 sigma)
+    last, it = _fine_stage(p, data, shape, full, robust, s_cap <= s0, max_iter, tol, converged)
     if arm_check and shape.kind == "cross" and robust:
         bad = _arm_outliers(p, data, shape, last, z_max=arm_z)
         redo = np.where(bad >= 0)[0]
