@@ -740,6 +740,7 @@ def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows,
             if vd[0, j]:
                 nv = j + 1
         pi = p[i:i + 1]
+        took = False  # a step completed: its state is in the buffers
         for it in range(it0, max_iter + 1):
             rob = robust and it > 1
             for a in range(K):
@@ -749,10 +750,19 @@ def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows,
             _weigh(gr, m1, vd, wp, cc, sb, x, y, qs, q, pb, rob, r1, wr1, w1, J, g, rss, wsum)
             _jtj(J, Jt, Nm, nv)
             _invert(Nm, g, active, Ninv, ok)
-            if not ok[0]:  # a vanishing pivot: this step and the rest by NumPy
-                fail[i] = it
+            if not ok[0]:  # a vanishing pivot: this step and the rest by NumPy (which
+                fail[i] = it  # write the state)
+                took = False
                 break
             _advance(Ninv, g, wsum, nact, rss, pi, dc, sig, cv, s0)
+            took = True
+            last_it[i] = it
+            if (rob and it > 2) or not robust:
+                sg = 0.0 if np.isnan(sig[0]) else sig[0]
+                if dc[0] < max(tol, conv * sg):
+                    done[i] = True
+                    break
+        if took:  # the state of the last step, its influence from its own J and inverse
             for a in range(2):
                 for b in range(K):
                     N2[0, a, b] = np.float32(Ninv[0, a, b])
@@ -761,12 +771,6 @@ def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows,
             R[i], WR[i], W[i], h[i] = r1[0], wr1[0], w1[0], h1[0]
             cov[i] = cv[0]
             s0sq[i] = s0[0]
-            last_it[i] = it
-            if (rob and it > 2) or not robust:
-                sg = 0.0 if np.isnan(sig[0]) else sig[0]
-                if dc[0] < max(tol, conv * sg):
-                    done[i] = True
-                    break
 
 
 def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol, conv, last,
