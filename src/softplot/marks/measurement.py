@@ -236,10 +236,9 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     start = np.where(fine.ok[redo, None], fine.xy[redo], c0[redo])
     d = np.hypot(*(fine.xy - near).T)
     okd = fine.ok & np.isfinite(d)
-    if okd.sum() >= 4:
-        far = ~fine.ok | (d > max(3.0 * 1.4826 * float(np.median(d[okd])), 2.0 * init_err))
-    else:
-        far = ~fine.ok
+    lim = (max(3.0 * 1.4826 * float(np.median(d[okd])), 2.0 * init_err) if okd.sum() >= 4
+           else np.inf)
+    far = ~fine.ok | (d > lim)
     use = far[redo] & np.isfinite(near[redo]).all(1)
     start[use] = near[redo][use]
     blur = held_blur(fine)
@@ -249,6 +248,9 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=anchor,
                  max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur,
                  sigma_ref=peer_sigma(fine))
+    # a refit started where the neighbours put the mark that ends as far from there as a
+    # slid fit lies has slid too (onto the scene beside a cross on a busy 3 x 3 grid)
+    f2.ok[use & (np.hypot(*(f2.xy - near[redo]).T) > lim)] = False
     # of two accepted fits of one mark, keep the one that agrees better with its neighbours:
     # the outlier test's leave-one-out prediction of its residual against a projective model
     both = fine.ok[redo] & f2.ok
