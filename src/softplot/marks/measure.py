@@ -21,7 +21,7 @@ from softplot.runtime import concurrent, thread_map
 
 __all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma",
            "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
-           "faint"]
+           "peer_gain", "faint"]
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +92,13 @@ class AcceptRules:
     #: it (a thin, low-contrast reseau: each cross weak per pixel, strong over its length)
     min_snr: float = 5.0
     faint_score: float = 0.75
+    #: ... and only with a contrast of at least this share of its peers' (``gain_ref`` of
+    #: :func:`measure`): a faint mark among strong ones is partly hidden (a dark band, the
+    #: scan's border), not a faint grid's
+    faint_gain: float = 0.5
+    #: ... and only this share of ``max_shift`` from the prediction at most (a faint fit
+    #: that wandered to the edge of its search had found scene content near the cross)
+    faint_shift: float = 0.35
 
 
 @dataclass
@@ -212,6 +219,16 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     S = S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     g = g.reshape(n, h + 2 * pad, w)[:, pad : pad + h]
     return np.ascontiguousarray(S), _prior_weights(g, nz, delta), g
+
+
+def peer_gain(fine: Fine, least: int = 3) -> float | None:
+    """The accepted marks' median contrast (``|gain|``, grey units) of a :class:`Fine`, or
+    None with fewer than ``least`` accepted (or no contrasts): the ``gain_ref`` of refits."""
+    if fine.gain is None or fine.ok.sum() < least:
+        return None
+    g = np.abs(fine.gain[fine.ok])
+    g = g[np.isfinite(g)]
+    return float(np.median(g)) if g.size >= least else None
 
 
 def peer_sigma(fine: Fine, least: int = 5) -> float | None:
@@ -578,10 +595,12 @@ def contrast_unlike(gain: np.ndarray, level: np.ndarray, line: np.ndarray,
         return np.abs(np.asarray(gain, float) - pred) > tol * np.abs(pred)
 
 
-def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
+def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None, gain_ref=None):
     """Acceptance tests: (ok mask, reasons). ``sigma_ref`` (px): the scan's accepted marks'
     median precision, the reference of the relative precision test where these marks are a
-    few refits (default: the median of those accepted here, when 5 or more)."""
+    few refits (default: the median of those accepted here, when 5 or more). ``gain_ref``:
+    the peers' contrast a faint mark is held to (:func:`faint`; "set": the median of these
+    fits of the expected polarity; None: no faint mark is accepted)."""
     n = len(c0)
     reason = [""] * n
     ok = np.ones(n, bool)
@@ -594,7 +613,15 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
     finite = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.gain)
     fail(~finite, "fit failed")
     fail(np.sign(res.gain) != sign, "no mark of the expected polarity")
-    weak = faint(res, rules)
+    shift = np.hypot(*(res.centre - anchor).T)
+    weak = faint(res, rules) & finite & (shift <= rules.faint_shift * max_shift)
+    if isinstance(gain_ref, str):
+        mine = finite & (np.sign(res.gain) == sign)
+        gain_ref = float(np.median(np.abs(res.gain[mine]))) if mine.sum() >= 3 else None
+    if gain_ref is None or not np.isfinite(gain_ref):
+        weak[:] = False
+    else:
+        weak &= np.abs(np.nan_to_num(res.gain)) >= rules.faint_gain * gain_ref
     fail((res.cnr < rules.min_cnr) & ~weak, "contrast too low")
     fail((res.score < rules.min_score) & ~weak, "does not look like the mark")
     parts_ok = (res.support >= rules.min_part_support).sum(1)
@@ -602,7 +629,6 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None):
     fail(parts_ok < need, "mark partly hidden")
     if res.part_gain is not None and res.part_gain.shape[1] == 4:
         fail(lone_bar(res.part_gain, res.gain, rules) >= 0, "one bar only")
-    shift = np.hypot(*(res.centre - anchor).T)
     fail(shift > max_shift, "moved away from the prediction")
     det0 = np.abs(np.linalg.det(A0))
     det1 = np.abs(np.linalg.det(res.A))
@@ -661,17 +687,18 @@ def _take(res: LSMResult, k: np.ndarray) -> LSMResult:
                         for f in fields(LSMResult)})
 
 
-def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets, sigma_ref=None):
+def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets, sigma_ref=None,
+                 gain_ref=None):
     """:func:`_accept` of each set of marks (``sets`` (N,) int) on its own."""
     vals = np.unique(sets)
     if len(vals) == 1:
-        return _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref)
+        return _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref, gain_ref)
     ok = np.zeros(len(c0), bool)
     why = [""] * len(c0)
     for v in vals:
         k = np.where(sets == v)[0]
         o, w = _accept(_take(res, k), c0[k], A0[k], s0, sign, rules, anchor[k], max_shift,
-                       sigma_ref)
+                       sigma_ref, gain_ref)
         ok[k] = o
         for j, i in enumerate(k):
             why[i] = w[j]
@@ -710,7 +737,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             max_shift: float | None = None, chunk: int = 20,
             drop_part: int | None = None, scene_tv: int = 0, auto_tv: int = 0,
             busy=None, blur: float | None = None, sigma_ref: float | None = None,
-            contrast: bool = False) -> Fine:
+            contrast: bool = False, gain_ref: float | str | None = None) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
@@ -756,6 +783,11 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         Also refuse fits whose contrast is unlike the accepted marks' (:func:`contrast_unlike`
         of the :func:`contrast_line` of this call's first pass, where it accepts
         :data:`CONTRAST_LEAST` or more; the retry is judged by the same line).
+    gain_ref : float or "set", optional
+        The contrast (grey units, :attr:`Fine.gain`) of the scan's marks: a faint mark
+        (:func:`faint`) is accepted only with at least ``rules.faint_gain`` of it. "set": the
+        median of this call's first fits of the expected polarity (all the scan's marks at
+        once); None (default): no faint mark is accepted (refits of a few marks).
     scene_tv : int
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
@@ -838,7 +870,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
         good, why = _accept_sets(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
-                                 max_shift, sets[idx], sigma_ref)
+                                 max_shift, sets[idx], sigma_ref, gain_ref)
         if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
@@ -857,7 +889,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
                                                      strict=True))))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
-                                max_shift, sigma_ref)
+                                max_shift, sigma_ref, gain_ref)
         if contrast:
             if p_i == 0:
                 line = contrast_line(res.gain, res.level, good)
@@ -878,6 +910,9 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             passes.append((np.array(retry, int), max(init_err, fast + 0.2)))
             if sigma_ref is None and good.sum() >= 5:  # the retry judged against the first
                 sigma_ref = float(np.median(res.sigma[good]))
+            if isinstance(gain_ref, str):  # and held to the first pass's contrast
+                mine = np.isfinite(res.gain) & (np.sign(res.gain) == sign)
+                gain_ref = float(np.median(np.abs(res.gain[mine]))) if mine.sum() >= 3 else None
             held = median_blur(res.s, good) if fit_blur else None
             if held is not None:
                 # the retry holds the accepted marks' median blur (a free blur let fits of

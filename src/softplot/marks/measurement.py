@@ -19,7 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from softplot.marks import grid
-from softplot.marks.measure import AcceptRules, Fine, measure, median_blur, peer_sigma
+from softplot.marks.measure import (
+    AcceptRules,
+    Fine,
+    measure,
+    median_blur,
+    peer_gain,
+    peer_sigma,
+)
 from softplot.marks.neighbours import local_prediction, position_affine
 from softplot.marks.prediction import Prediction
 from softplot.marks.scene import JOINT_PASSES, busy_scene
@@ -110,7 +117,7 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
                        anchor=pred[idx], max_shift=max_shift,
                        scene_tv=JOINT_PASSES if scene == "joint" else 0,
                        auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=busy_scene,
-                       contrast=True)
+                       contrast=True, gain_ref="set")
 
     fine = fit(s0)
     held = held_blur(fine)
@@ -128,6 +135,7 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
                           sign, rules, max_shift, ppm, scene_tv=tv, A0=A0[idx])
     other_sizes(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
                 max_shift, scene_tv=tv)
+    few_faint(fine, rules or AcceptRules())
     N = len(pr.film)
     xy = np.full((N, 2), np.nan)
     cov = np.full((N, 2, 2), np.nan)
@@ -148,6 +156,25 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
             reason[i] = fine.reason[k] or "not found"
     return Measurement(shape=shape, fitted=idx, fine=fine, scene_tv=tv, xy=xy, cov=cov,
                        cov_white=cov_w, score=score, cnr=cnr, status=status, reason=reason)
+
+
+#: faint crosses (:func:`softplot.marks.measure.faint`) are measured only with at least this
+#: many crosses measured in all: a faint fit is weaker evidence than one that passes the
+#: per-pixel tests, and a few of them on a busy scene's corners (4 fit a projective grid of
+#: their own exactly) would make a reseau of a lattice the strong crosses refuse
+FAINT_GRID = 6
+
+
+def few_faint(fine: Fine, rules: AcceptRules) -> None:
+    """Refuse (in place) the faint crosses of ``fine`` when fewer than :data:`FAINT_GRID`
+    crosses are accepted in all."""
+    if fine.ok.sum() >= FAINT_GRID:
+        return
+    weak = fine.ok & ((np.nan_to_num(fine.cnr) < rules.min_cnr)
+                      | (np.nan_to_num(fine.score) < rules.min_score))
+    for i in np.where(weak)[0]:
+        fine.ok[i] = False
+        fine.reason[i] = "faint, and too few crosses measured"
 
 
 def measure_marks(scan, shapes, start: np.ndarray, A: np.ndarray, s0: float,
@@ -247,7 +274,7 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     anchor = np.where(use[:, None], start, pred[redo])
     f2 = measure(sc, shape, start, cons[redo], s0, init_err, sign, rules, anchor=anchor,
                  max_shift=max_shift, fit_shape=False, scene_tv=scene_tv, blur=blur,
-                 sigma_ref=peer_sigma(fine))
+                 sigma_ref=peer_sigma(fine), gain_ref=peer_gain(fine))
     # a refit started where the neighbours put the mark that ends as far from there as a
     # slid fit lies has slid too (onto the scene beside a cross on a busy 3 x 3 grid)
     f2.ok[use & (np.hypot(*(f2.xy - near[redo]).T) > lim)] = False
@@ -322,7 +349,7 @@ def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_sh
         start = np.where(np.isfinite(fine.xy[grp]).all(1, keepdims=True), fine.xy[grp], c0[grp])
         f2 = measure(sc, big, start, A0[grp], s0 * max(kk, 1.0), init_err, sign, rules,
                      anchor=pred[grp], max_shift=max_shift, scene_tv=scene_tv,
-                     sigma_ref=peer_sigma(fine))
+                     sigma_ref=peer_sigma(fine), gain_ref=peer_gain(fine))
         for j, i in enumerate(grp):
             if f2.ok[j]:
                 fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]
