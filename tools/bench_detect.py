@@ -43,6 +43,11 @@ One and two threads (``--threads-alternate``): the busy scans (default scene mod
 in this process on one thread and on two, alternating detection by detection (both see the
 same load of a shared machine); wall and CPU time of load + detect.
 
+Stages (``--stages``): the busy scans' detection, wall and CPU time of each stage of
+:mod:`softplot.marks.detect` (overview, lattice, prediction, mark geometry, width,
+measurement, validation; CPU of the whole process, so on two threads both threads' time),
+medians of ``--runs``.
+
 Two versions (``--compare SRC``): the busy scans detected by this checkout's code and by
 the code under ``SRC`` in two worker processes side by side, alternating detection by
 detection (each warmed up on each scan first), CPU and wall time of load + detect: on a
@@ -54,6 +59,7 @@ Usage::
     .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8] [--threads 1]
     .venv/bin/python tools/bench_detect.py --compare OTHER/src [--runs 8] [--threads 1]
     .venv/bin/python tools/bench_detect.py --threads-alternate [--runs 8]
+    .venv/bin/python tools/bench_detect.py --stages [--runs 7] [--threads 2]
 """
 
 from __future__ import annotations
@@ -295,6 +301,67 @@ def alternate(runs: int) -> None:
     print(f"load average at end: {_load()}")
 
 
+#: the stages of a reseau detection timed by ``--stages`` (functions of
+#: :mod:`softplot.marks.detect`)
+STAGES = ("reseau_overview", "_lattice", "predict", "centred_geometry", "choose_width",
+          "measure_crosses", "validate")
+
+
+def stage_times(runs: int, n_threads: int) -> None:
+    """``--stages``: wall and CPU time (the process's, all threads) of each stage of the busy
+    scans' detection, medians of ``runs`` after a warm-up."""
+    import importlib
+
+    from softplot.io import load_scan
+    from softplot.marks import kernels
+    from softplot.runtime import set_threads, tune_allocator
+    from softplot.synthetic import ScanSpec, write_scan
+
+    det_mod = importlib.import_module("softplot.marks.detect")
+    tune_allocator()
+    set_threads(n_threads)
+    kernels.load()
+    acc: dict = {}
+
+    def timed(name, f):
+        def g(*args, **kw):
+            t, c = time.perf_counter(), time.process_time()
+            out = f(*args, **kw)
+            w = acc.setdefault(name, [0.0, 0.0])
+            w[0] += time.perf_counter() - t
+            w[1] += time.process_time() - c
+            return out
+        return g
+
+    saved = {n: getattr(det_mod, n) for n in STAGES}
+    for n, f in saved.items():
+        setattr(det_mod, n, timed(n, f))
+    print(f"load average at start: {_load()}; {n_threads} thread(s)")
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench_stages_") as tmp:
+            for dpi in (1200, 2400):
+                path, _ = write_scan(Path(tmp), "rollei-6006", ScanSpec(
+                    dpi=dpi, rotation_deg=1.5, scene="busy"), seed=7, stem=f"busy-{dpi}")
+                rows = []
+                for i in range(runs + 1):
+                    acc.clear()
+                    t, c = time.perf_counter(), time.process_time()
+                    det_mod.detect(load_scan(path), "rollei-6006")
+                    if i:  # the first run warms caches
+                        total = (time.perf_counter() - t, time.process_time() - c)
+                        rows.append({"load + detect": total, **{k: tuple(v) for k, v in
+                                                                 acc.items()}})
+                print(f"busy {dpi} dpi, medians of {runs} (wall / CPU s):")
+                for k in ("load + detect",) + STAGES:
+                    w = statistics.median(r.get(k, (0.0, 0.0))[0] for r in rows)
+                    c = statistics.median(r.get(k, (0.0, 0.0))[1] for r in rows)
+                    print(f"  {k}: {w:.3f} / {c:.3f}")
+    finally:
+        for n, f in saved.items():
+            setattr(det_mod, n, f)
+    print(f"load average at end: {_load()}")
+
+
 def _worker(n_threads: int) -> None:
     """``--worker``: detect the busy scans named on stdin, one per line; print CPU and wall
     time of each (load + detect) on stdout. Warmed up on every scan first."""
@@ -372,6 +439,9 @@ def main() -> None:
                          "version's src folder), alternating in two processes")
     ap.add_argument("--threads-alternate", action="store_true",
                     help="the busy scans on one and two threads, alternating in this process")
+    ap.add_argument("--stages", action="store_true",
+                    help="the busy scans: wall and CPU time of each detection stage "
+                         "(--threads, default 1)")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -386,6 +456,9 @@ def main() -> None:
         return
     if a.compare:
         compare(a.compare, a.runs, a.threads or 1)
+        return
+    if a.stages:
+        stage_times(a.runs, a.threads or 1)
         return
     if a.busy:
         busy(a.runs, a.batch, a.threads)

@@ -990,6 +990,12 @@ def load() -> bool:
             cross_template(MarkShape("cross", length=5.0, width=1.0), np.zeros((1, 2)),
                            np.zeros((1, 2)), np.eye(2)[None], np.ones(1), (3, 3), np.ones(1))
             local_solve(np.ones((1, 3, 3)), np.ones((1, 3)), np.ones((1, 3, 1)))
+            state = {k: np.zeros((1, 1), np.float32) for k in ("M", "T", "Tu", "Tv", "u",
+                                                                 "v", "r", "w_rob", "w")}
+            state.update(cov=np.zeros((1, 2, 2)), s0sq=np.zeros(1),
+                         h=np.zeros((1, 2, 1), np.float32))
+            fine_steps(p.copy(), data, 5.0, 1.0, np.ones(12, bool), True,
+                       np.zeros(1, np.int64), 1, 1, 5e-4, 0.5, state, np.zeros(1, bool))
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path
             warnings.warn(f"softplot: compiled LSM kernel unavailable ({type(exc).__name__}: "
                           f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)
