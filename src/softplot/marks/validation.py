@@ -32,7 +32,7 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "extrapolation",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_PX", "PATTERN_OUTLIER_MM",
+           "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
            "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX", "EDGE_CUT_MAX"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
@@ -60,10 +60,11 @@ RESCUE_MIN_GAIN = 0.1
 RESCUE_MAX_SIGMA_RATIO = 2.0
 #: the least standard deviation (px) of a lone bar's position along it (the prediction's)
 LONE_ARM_ALONG_MIN_PX = 0.5
-#: the largest standard deviation (px, reported: after the scan's variance factor) of a lone
-#: bar's position along it: on scans whose neighbours' predictions are poorer, a lone bar's
-#: point is a guess along the bar (the sweep's busy low-dpi renders: 2-4 px, and 2-5 px off)
-LONE_ARM_ALONG_MAX_PX = 1.75
+#: the largest standard deviation (film mm, reported: after the scan's variance factor) of a
+#: lone bar's position along it: the largest film deformation tested; where the neighbours
+#: predict a position more poorly than that, a lone bar's point is a guess along the bar
+#: (the sweep's busy low-dpi renders: 0.14-0.23 mm, and 2-5 px off)
+LONE_ARM_ALONG_MAX_MM = 0.1
 #: lone bars are measured where at least this many crosses are: a plane through four
 #: neighbours and one to spare predicts their position (a 3 x 3 grid with three
 #: one-armed crosses has six)
@@ -141,7 +142,7 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
     lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
               pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
-              along_max=LONE_ARM_ALONG_MAX_PX / np.sqrt(vfac))
+              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac))
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
@@ -453,8 +454,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
     bar's contrast to noise, or its contrast, must be at least half the measured crosses'
     median (the noise under a lone bar is not always the crosses'). Where that standard
-    deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_PX` over the root of the
-    scan's variance factor, which scales it later) no bar is measured: the point would be
+    deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_MM` in px over the root of
+    the scan's variance factor, which scales it later) no bar is measured: the point would be
     the neighbours' guess along the bar, not a measurement. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
