@@ -569,6 +569,19 @@ def gather_cross(patches, origin, ref, c, A, length, width, margin, background=N
     return X, Y, G, V, S, Wp, Q, Cc
 
 
+@njit(inline="always")
+def _pivot(A, c, n):
+    """Partial pivoting: the row ``piv`` in ``c .. n-1`` with the largest ``|A[piv, c]|``, and
+    that magnitude."""
+    piv = c
+    best = abs(A[c, c])
+    for a in range(c + 1, n):
+        if abs(A[a, c]) > best:
+            best = abs(A[a, c])
+            piv = a
+    return piv, best
+
+
 @njit(fastmath=False, cache=True, nogil=True)
 def _invert(Nm, g, active, Ninv, ok):
     n, K, _ = Nm.shape
@@ -589,12 +602,7 @@ def _invert(Nm, g, active, Ninv, ok):
         # Gauss-Jordan with partial pivoting
         good = True
         for c in range(K):
-            piv = c
-            best = abs(A[c, c])
-            for a in range(c + 1, K):
-                if abs(A[a, c]) > best:
-                    best = abs(A[a, c])
-                    piv = a
+            piv, best = _pivot(A, c, K)
             if not best > 0 or not np.isfinite(best):
                 good = False
                 break
@@ -908,12 +916,7 @@ def _local_solve(D, w, vals, tol, out, level):
                 A[a, p + c] = t
         # Gaussian elimination with partial pivoting, then back substitution
         for c in range(p):
-            piv = c
-            best = abs(A[c, c])
-            for a in range(c + 1, p):
-                if abs(A[a, c]) > best:
-                    best = abs(A[a, c])
-                    piv = a
+            piv, best = _pivot(A, c, p)
             if piv != c:
                 for b in range(p + C):
                     t = A[c, b]
