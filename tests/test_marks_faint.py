@@ -90,3 +90,51 @@ def test_a_few_faint_fits_do_not_make_a_reseau(monkeypatch):
     monkeypatch.setattr(measurement, "FAINT_GRID", 0)
     loose, _ = run_case(case)
     assert loose.result and (loose.wrong or loose.claimed)
+
+
+def _dim_band_case():
+    """The top left of a sweep render of a Rollei 6006 (1481 dpi, JPEG, contrast 0.08, no
+    scene) whose reseau rows 2 and 3 lie under a dim region of the film (scene factor 0.32):
+    the crosses there keep 0.2-0.45 of the others' contrast, with a matched-filter
+    signal-to-noise of 9-15 each."""
+    from softplot.synthetic.sweep import make_case
+
+    case = make_case(163)
+    assert "dark-rows" in case.conditions and case.spec.dark_level > 0.2
+    spec = dataclasses.replace(case.spec, crop_mm=(0.0, 0.0, 28.0, 26.0))
+    return dataclasses.replace(case, spec=spec)
+
+
+def test_faint_crosses_under_a_dim_region_are_measured():
+    """Held to half their peers' contrast, the crosses of the dim rows were refused; held to
+    a quarter of it with twice the faint signal-to-noise they are measured, each within its
+    truth tolerance, and none is claimed."""
+    from softplot.marks.measure import AcceptRules
+    from softplot.synthetic.sweep import run_case
+
+    case = _dim_band_case()
+    before, _ = run_case(case, detect_kw={"rules": AcceptRules(dim_snr=np.inf)})
+    assert before.result and before.measured <= before.visible - 10
+    sc, _ = run_case(case)
+    assert sc.result, sc.error
+    assert not sc.wrong and not sc.claimed and not sc.gross
+    assert sc.measured >= sc.visible - 2
+    assert np.sqrt(np.mean(sc.z2)) < 2.0
+
+
+def test_fits_where_a_dark_band_hides_the_crosses_stay_refused():
+    """A 13 x 18 cm plate (677 dpi, JPEG, contrast 0.09) whose rows 3 and 4 lie under a
+    region that exposes nothing: fits there keep a tenth or so of the peers' contrast at a
+    matched-filter signal-to-noise of 9-11; held to no share of the peers' contrast one is
+    claimed, with the dim-region rule none."""
+    from softplot.marks.measure import AcceptRules
+    from softplot.synthetic.sweep import make_case, run_case
+
+    case = make_case(199)
+    assert "dark-rows" in case.conditions and case.spec.dark_level == 0.0
+    loose, _ = run_case(case, detect_kw={"rules": AcceptRules(dim_gain=0.0)})
+    assert loose.claimed
+    sc, _ = run_case(case)
+    assert sc.result, sc.error
+    assert not sc.claimed and not sc.wrong and not sc.gross
+    assert sc.measured == sc.visible

@@ -96,6 +96,14 @@ class AcceptRules:
     #: :func:`measure`): a faint mark among strong ones is partly hidden (a dark band, the
     #: scan's border), not a faint grid's
     faint_gain: float = 0.5
+    #: ... or, with a matched-filter signal-to-noise of at least ``dim_snr``, of at least
+    #: ``dim_gain`` of it: a dim region of the film (a dark sky, a shadow) scales down the
+    #: contrast of the crosses under it, which stay evident over their length; the fits
+    #: where a dark band hides the crosses (noise, a JPEG copy's blocks) keep a tenth or
+    #: two of the peers' contrast, and the dim fits on a busy scene's content have
+    #: matched-filter signal-to-noise ratios of 6-8
+    dim_gain: float = 0.25
+    dim_snr: float = 10.0
     #: ... and only this share of ``max_shift`` from the prediction at most (a faint fit
     #: that wandered to the edge of its search had found scene content near the cross)
     faint_shift: float = 0.35
@@ -621,7 +629,9 @@ def _accept(res, c0, A0, s0, sign, rules, anchor, max_shift, sigma_ref=None, gai
     if gain_ref is None or not np.isfinite(gain_ref):
         weak[:] = False
     else:
-        weak &= np.abs(np.nan_to_num(res.gain)) >= rules.faint_gain * gain_ref
+        g = np.abs(np.nan_to_num(res.gain))
+        dim = (g >= rules.dim_gain * gain_ref) & (np.nan_to_num(res.snr) >= rules.dim_snr)
+        weak &= (g >= rules.faint_gain * gain_ref) | dim
     fail((res.cnr < rules.min_cnr) & ~weak, "contrast too low")
     fail((res.score < rules.min_score) & ~weak, "does not look like the mark")
     parts_ok = (res.support >= rules.min_part_support).sum(1)
