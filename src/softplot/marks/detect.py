@@ -55,10 +55,13 @@ from softplot.marks.common import (
 )
 from softplot.marks.fiducial import detect_fiducials
 from softplot.marks.lattice import (
+    MIN_PART,
+    MIN_SPANNING,
     Lattice,
     between_nodes,
     estimate_dpi,
     fit_lattice,
+    reseau_sized,
     turn_template,
 )
 from softplot.marks.marksize import centred_geometry, choose_width
@@ -73,16 +76,14 @@ from softplot.marks.validation import MAX_GRID_RMS_MM, Validation, validate
 
 __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_grid_part"]
 
-#: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
-#: a part of 3 x 3 crosses with a few missing still passes
-MIN_PART = 6
-#: ... unless it has at least this many and reaches the grid's first and last row and column
-#: (no other naming is possible), and at least this many crosses are then measured
-MIN_SPANNING = 4
 #: crosses measured on a lattice of at least MIN_PART candidates that make a reseau: fewer than
 #: 4 are tested against the lattice's model (not a model of their own), and one cross agrees
 #: with it by chance (a busy plain photograph's cross-like corner near one of its nodes)
 MIN_MEASURED = 2
+#: crosses measured on a lattice grown from one too small to be a reseau (its other crosses
+#: looked for at its nodes) that make a reseau: a projective model fits 4 crosses exactly
+#: (a scene feature measured as one of them goes unseen), a fifth tests them
+MIN_DENSE = 5
 #: fewer than 4 crosses measured lie within this (film mm, rms) of the lattice's model (the
 #: lattice's crosses place it to a few hundredths of a millimetre; a plain photograph's
 #: cross-like corners near its nodes lie 0.1-0.3 mm off)
@@ -195,8 +196,10 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     timings["overview"] = time.perf_counter() - t0
     lat = _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi)
     timings["grid"] = time.perf_counter() - t0
-    # a lattice of fewer than MIN_PART candidates is a reseau once MIN_SPANNING crosses hold
-    min_measured = (MIN_SPANNING if len(lat.grid.node) < min(MIN_PART, res.count)
+    # a lattice of fewer than MIN_PART candidates is a reseau once MIN_SPANNING crosses hold,
+    # one grown from such a lattice by looking at its nodes once MIN_DENSE crosses hold
+    min_measured = (MIN_DENSE if lat.densified
+                    else MIN_SPANNING if len(lat.grid.node) < min(MIN_PART, res.count)
                     else MIN_MEASURED)
     pr = predict(lat, res.film(), ppm, blur_px)
     ambiguous = lat.grid.ambiguous
@@ -239,7 +242,7 @@ def _check_size(sc, cam, dpi, name) -> None:
 
 def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lattice:
     """Candidates and lattice (stages 2 and 3); no lattice, or one of fewer than
-    :data:`MIN_PART` crosses that does not span the grid (:func:`_spans_grid`), is a
+    :data:`MIN_PART` crosses that does not span the grid (:func:`reseau_sized`), is a
     :class:`DetectionError`."""
     res = cam.reseau
     ppm = dpi / MM_PER_INCH
@@ -262,22 +265,11 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
             f"its {res.pitch_x}x{res.pitch_y} mm nodes (a pitch of about {px:g}x{py:g} mm); "
             f"is {cam.name} the scan's camera?")
     n_assigned = len(lat.grid.node)
-    if n_assigned < min(MIN_PART, res.count) and not _spans_grid(lat.grid.node, res):
+    if not reseau_sized(lat.grid.node, res):
         raise DetectionError(
             f"{name}: no reseau found: expected {res.rows}x{res.cols} crosses at "
             f"{res.pitch_x}x{res.pitch_y} mm, found only {n_assigned} on a lattice")
     return lat
-
-
-def _spans_grid(node, res) -> bool:
-    """Do the lattice's crosses ``node`` (indices, row-major) reach the first and last row
-    and column of the certificate's grid, :data:`MIN_SPANNING` of them at least? A small
-    grid over a busy scene shows a few of its crosses among the candidates, but placed so
-    that the grid can be named only one way."""
-    node = np.asarray(node, int)
-    r, c = node // res.cols, node % res.cols
-    return bool(len(node) >= MIN_SPANNING and r.min() == 0 and r.max() == res.rows - 1
-                and c.min() == 0 and c.max() == res.cols - 1)
 
 
 def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous,

@@ -22,13 +22,15 @@ from softplot.marks.candidates import (
     arm_scored,
     crosses_in,
     peaks_kept,
+    search_map,
 )
 from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs
 from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
 
 __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
-           "seeable", "between_nodes", "FRAME_STEP", "SCALE_TOL", "HALF_STEPS"]
+           "seeable", "between_nodes", "reseau_sized", "FRAME_STEP", "SCALE_TOL", "HALF_STEPS",
+           "MIN_PART", "MIN_SPANNING"]
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
 FRAME_STEP = 0.25
@@ -38,6 +40,19 @@ EDGE_SHOWN = 0.3
 #: a fit of fewer crosses is never a reseau (detection needs at least as many): it does
 #: not stop the other polarity from being fitted, and loses to a fit of as many
 MIN_FIT = 4
+#: a lattice of fewer candidates than this (or the whole grid, when smaller) is not a reseau:
+#: a part of 3 x 3 crosses with a few missing still passes
+MIN_PART = 6
+#: ... unless it has at least this many and reaches the grid's first and last row and column
+#: (no other naming is possible), and at least this many crosses are then measured
+MIN_SPANNING = 4
+#: the distance (film mm) from a small lattice's node within which a cross crowded out of
+#: the candidates is looked for (:func:`_densified`)
+NODE_SEARCH_MM = 0.5
+#: the rounds of :func:`_densified`
+DENSIFY_ROUNDS = 2
+#: the least correlation of a peak (the candidates' threshold)
+PEAK_MIN = 0.2
 #: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
 #: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
 SCALE_TOL = 0.03
@@ -64,6 +79,9 @@ class Lattice:
         The map's offset (overview px).
     factor : int
         The overview's reduction factor.
+    densified : bool
+        Some of ``peaks`` were looked for at the nodes of a lattice too small to be a
+        reseau (:func:`_densified`), not found among the candidates.
     """
 
     grid: grid.GridFit
@@ -72,6 +90,7 @@ class Lattice:
     ncc: np.ndarray
     half: int
     factor: int
+    densified: bool = False
 
     def assigned_xy(self) -> np.ndarray:
         """The assigned peaks (K, 2), full-resolution pixel system (order of ``grid.node``)."""
@@ -216,6 +235,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     of the grid the scan shows when the user gives it ((col0, col1, row0, row1) or None).
     A sign whose :attr:`Candidates.bound` cannot beat a fit already made (of at least
     :data:`MIN_FIT` crosses) is not fitted; a fit of fewer crosses loses to one of as many.
+    When no fit can be a reseau (:func:`reseau_sized`), each is fitted again with the
+    crosses looked for at its nodes (:func:`_densified`).
     """
     res = camera.reseau
     f, px_per_mm = ov.factor, ov.px_per_mm
@@ -226,26 +247,111 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
         pk, bound = cands.peaks[sg], cands.bound[sg]
         # a fit of too few crosses to be a reseau (junk of the other polarity) prunes none
-        done = [g.score for g in fits.values() if g is not None and len(g.node) >= MIN_FIT]
+        done = [g.score for g, _, _ in fits.values()
+                if g is not None and len(g.node) >= MIN_FIT]
         if done and bound < max(done):
             continue
-        xy = coarse.ov_to_full(pk.xy, f)
-        # a cross nearer the scan's edge than the correlation map reaches (its offset) has
-        # no peak: it is never a missed cross
-        fits[sg] = grid.fit_grid(xy, pk.score, res, (scan.width, scan.height),
-                                 px_per_mm=px_per_mm, rotate_deg=rotate_deg,
+
+        def fit(q):
+            # a cross nearer the scan's edge than the correlation map reaches (its offset)
+            # has no peak: it is never a missed cross
+            return grid.fit_grid(coarse.ov_to_full(q.xy, f), q.score, res,
+                                 (scan.width, scan.height), px_per_mm=px_per_mm,
+                                 rotate_deg=rotate_deg,
                                  margin_px=max(0.5 * cands.template.length, cands.half) * f,
                                  frame_evidence=frame_evidence(ov.image, f, px_per_mm, pmin),
                                  format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
                                  seeable=show)
+
+        fits[sg] = (fit(pk), pk, fit)
+    dense = set()
+    if not any(g is not None and reseau_sized(g.node, res) for g, _, _ in fits.values()):
+        # no fit can be a reseau: each looks for the crosses the candidates lack
+        for sg, (g, pk, fit) in fits.items():
+            if g is not None:
+                g2, pk2 = _densified(g, pk, sg, cands, ov, res, fit)
+                if g2 is not g:
+                    fits[sg] = (g2, pk2, fit)
+                    dense.add(sg)
     best = None
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
-        g = fits.get(sg)
+        g, pk, _ = fits.get(sg, (None, None, None))
         if g is not None and (best is None or (len(g.node) >= MIN_FIT, g.score)
                               > (len(best.grid.node) >= MIN_FIT, best.grid.score)):
-            best = Lattice(grid=g, sign=sg, peaks=cands.peaks[sg], ncc=cands.ncc,
-                           half=cands.half, factor=f)
+            best = Lattice(grid=g, sign=sg, peaks=pk, ncc=cands.ncc, half=cands.half,
+                           factor=f, densified=sg in dense)
     return best
+
+
+def reseau_sized(node, res) -> bool:
+    """Can the lattice's crosses ``node`` (indices, row-major) be a reseau: at least
+    :data:`MIN_PART` of them (or the whole grid ``res``, when smaller), or at least
+    :data:`MIN_SPANNING` reaching the first and last row and column of the grid (a small grid
+    over a busy scene shows a few of its crosses among the candidates, but placed so that
+    the grid can be named only one way)?"""
+    node = np.asarray(node, int)
+    if len(node) >= min(MIN_PART, res.count):
+        return True
+    r, c = node // res.cols, node % res.cols
+    return bool(len(node) >= MIN_SPANNING and r.min() == 0 and r.max() == res.rows - 1
+                and c.min() == 0 and c.max() == res.cols - 1)
+
+
+def _nodes_around(node, res) -> np.ndarray:
+    """The film positions (mm) of the nodes of every naming of a lattice whose crosses are
+    ``node`` (indices, row-major, of the grid ``res``): the lattice's nodes within a grid's
+    extent of them less those, (K, 2)."""
+    node = np.asarray(node, int)
+    r, c = node // res.cols, node % res.cols
+    jj, ii = np.mgrid[r.max() - res.rows + 1: r.min() + res.rows,
+                      c.max() - res.cols + 1: c.min() + res.cols]
+    keep = ~np.isin(jj * res.cols + ii, r * res.cols + c) | (ii < 0) | (ii >= res.cols)
+    film = res.film()
+    x0 = film[0]
+    sx = film[1] - film[0] if res.cols > 1 else np.array([res.pitch_x, 0.0])
+    sy = film[res.cols] - film[0] if res.rows > 1 else np.array([0.0, -res.pitch_y])
+    return x0 + ii[keep][:, None] * sx + jj[keep][:, None] * sy
+
+
+def _densified(g, pk, sign, cands: Candidates, ov: ReseauOverview, res, fit):
+    """A lattice too small to be a reseau (:func:`reseau_sized`) from peaks looked for at the
+    nodes of its every naming: a small grid over a busy scene has crosses that the scene's
+    stronger peaks crowd out of the candidates ``pk`` (overview pixel system), though the
+    NCC map shows them where the lattice ``g`` (film mm -> full-resolution pixel system) puts
+    a cross.
+
+    At every node (:func:`_nodes_around`, placed by an affine model of the lattice's
+    crosses), the best correlation of ``sign`` within :data:`NODE_SEARCH_MM`
+    (:func:`~softplot.marks.candidates.search_map`), when :data:`PEAK_MIN` or more, joins
+    the candidates; ``fit`` (peaks -> fit) fits the lattice again, up to
+    :data:`DENSIFY_ROUNDS` times while it grows. Returns (fit, peaks): the largest fit and
+    its peaks (``g`` and ``pk`` when none grows)."""
+    f = ov.factor
+    base = pk
+    for _ in range(DENSIFY_ROUNDS):
+        # an affine model of the lattice's crosses: a projective one of a few extrapolates
+        # badly
+        A = np.column_stack([res.film()[g.node], np.ones(len(g.node))])
+        sol = np.linalg.lstsq(A, pk.xy[g.index], rcond=None)[0]  # film mm -> overview px
+        film = _nodes_around(g.node, res)
+        if len(film) == 0:
+            break
+        at = np.column_stack([film, np.ones(len(film))]) @ sol
+        pos, val = search_map(cands.ncc, cands.half, sign, at,
+                              max(2.0, NODE_SEARCH_MM * ov.px_per_mm / f))
+        # no arm evidence asked: a cross at a node of the lattice often has one arm over
+        # the scene's lines (the full-resolution fit decides)
+        ok = np.isfinite(val) & (val >= PEAK_MIN)
+        if not ok.any():
+            break
+        n = int(ok.sum())
+        pk2 = coarse.Peaks(np.vstack([base.xy, pos[ok]]), np.concatenate([base.score, val[ok]]),
+                           np.concatenate([base.sign, np.full(n, sign)]))
+        g2 = fit(pk2)
+        if g2 is None or len(g2.node) <= len(g.node):
+            break
+        g, pk = g2, pk2
+    return g, pk
 
 
 def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: float,
@@ -281,7 +387,8 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
                        format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
                        seeable=seeable(ov.image, f, ppm, pmin))
     if g2 is not None and len(g2.node) >= len(g.node):
-        return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f)
+        return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f,
+                       densified=lat.densified)
     return lat
 
 
