@@ -21,15 +21,14 @@ import numpy as np
 from scipy.optimize import nnls
 
 from softplot.marks import grid
-from softplot.marks.measure import AcceptRules, measure, measure_one_arm
+from softplot.marks.measure import AcceptRules, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
 from softplot.marks.neighbours import local_fit, local_prediction, outline, position_affine
 from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "median_gain",
-           "extrapolation",
+           "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "extrapolation",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
@@ -131,7 +130,7 @@ def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) ->
     if rescue(scan, shape, film, xy, (cov, cov_w), status, reason, Hm, sigma, floor_px, A_fit,
               pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm, scene_tv=m.scene_tv,
               blur=held_blur(fine), fitted=fitted, departure=dep,
-              gain_ref=median_gain(fine)):
+              gain_ref=peer_gain(fine, least=1)):
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
@@ -342,15 +341,6 @@ def extrapolation(film, sigma, edge, draws=16):
     return out
 
 
-def median_gain(fine) -> float | None:
-    """The accepted fits' median contrast (grey units, absolute) of a
-    :class:`~softplot.marks.measure.Fine`, or None where none was accepted: the reference
-    of the rescue's and the lone bars' contrast tests."""
-    if fine.gain is None or not fine.ok.any():
-        return None
-    return float(np.median(np.abs(fine.gain[fine.ok])))
-
-
 def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0, init_err,
             sign, rules, max_shift, ppm, *, fitted, scene_tv=0, blur=None, departure=None,
             gain_ref=None):
@@ -476,7 +466,7 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
     f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
                          along_sd=along, blur=blur, cnr_ref=cnr_ref,
-                         gain_ref=median_gain(fine))
+                         gain_ref=peer_gain(fine, least=1))
     for j, i in enumerate(q):
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
@@ -550,7 +540,7 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     good = f.ok & (np.hypot(*(f.xy - target).T) <= thr)
     good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * float(np.median(
         sigma[meas]))
-    gain_ref = median_gain(m.fine)
+    gain_ref = peer_gain(m.fine, least=1)
     if gain_ref is not None and f.gain is not None:
         good &= np.abs(np.nan_to_num(f.gain)) >= RESCUE_MIN_GAIN * gain_ref
     got = q[good]
