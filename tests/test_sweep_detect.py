@@ -345,3 +345,16 @@ def test_renders_are_cached_exactly(tmp_path):
     other = replace(case, spec=replace(case.spec, noise_sigma=case.spec.noise_sigma * 2))
     render_case(other, tmp_path)
     assert len(list(tmp_path.glob("*.json"))) == 2
+
+
+def test_truth_of_a_jpeg_case_says_it_is_a_jpeg(tmp_path):
+    """A case compressed after rendering keeps a truth that names the format and quality it
+    is stored with (not the render spec's TIFF default), fresh and from the cache alike."""
+    from softplot.synthetic.sweep import render_case
+
+    seed = min((s for s in range(60) if make_case(s).jpeg), key=lambda s: _pixels(make_case(s)))
+    case = make_case(seed)
+    for _ in range(2):  # rendered, then read back from the cache
+        truth = render_case(case, tmp_path)[1]
+        assert truth["spec"]["file_format"] == "jpeg"
+        assert truth["spec"]["jpeg_quality"] == case.jpeg

@@ -608,6 +608,15 @@ def _cache_key(case: Case) -> str:
 _RENDER_CODE = None
 
 
+def _as_stored(truth: dict, case: Case) -> dict:
+    """The truth of ``case`` saying how its image is stored: a case compressed after rendering
+    (``case.jpeg``) is a JPEG of that quality, whatever the render spec's defaults say."""
+    if not case.jpeg:
+        return truth
+    return {**truth, "spec": {**truth.get("spec", {}), "file_format": "jpeg",
+                              "jpeg_quality": int(case.jpeg)}}
+
+
 def render_case(case: Case, cache=None):
     """(image as stored, truth, grey scene without marks or None, JPEG loss rms).
 
@@ -624,7 +633,7 @@ def render_case(case: Case, cache=None):
             d = json.loads(meta.read_text(encoding="utf-8"))
             img = np.load(str(base) + ".img.npy")
             scene = np.load(str(base) + ".scene.npy") if d["scene"] else None
-            return img, d["truth"], scene, d["jpeg_rms"]
+            return img, _as_stored(d["truth"], case), scene, d["jpeg_rms"]
         out = render_case(case)
         Path(cache).mkdir(parents=True, exist_ok=True)
         for part, a in (("img", out[0]), ("scene", out[2])):
@@ -642,7 +651,7 @@ def render_case(case: Case, cache=None):
     if case.jpeg:
         stored = _jpeg(img, case.jpeg)
         jpeg_rms = _loss_at_marks(_grey(stored) - _grey(img), truth)
-        img = stored
+        img, truth = stored, _as_stored(truth, case)
     scene = None
     if case.spec.scene == "busy":
         spec = replace(case.spec, noise_sigma=0.0, bits=32)
