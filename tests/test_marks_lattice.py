@@ -74,6 +74,29 @@ def test_arm_evidence_tells_a_cross_from_corners_edges_blobs_and_block_corners()
     assert arm_evidence(1.0 - img, pts[:1], -1, 8.0, 1.0, 0.7)[0] == pytest.approx(cross)
 
 
+def test_arm_evidence_read_in_chunks_is_the_same(monkeypatch):
+    """Points read a chunk at a time (a bounded working set) give each point the evidence
+    it has read alone or among all, to the precision of the bilinear reads (OpenCV's remap
+    interpolates at 1/32 px, on float32 coordinates of the stacked windows); points outside
+    the image stay -inf."""
+    from softplot.marks import candidates
+
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0.3, 0.6, (90, 120)).astype(np.float32)
+    pts = np.column_stack([rng.uniform(-5, 125, 50), rng.uniform(-5, 95, 50)])
+    whole = candidates.arm_evidence(img, pts, +1, 8.0, 1.0, 0.7)
+    monkeypatch.setattr(candidates, "ARM_CHUNK", 7)
+    chunked = candidates.arm_evidence(img, pts, +1, 8.0, 1.0, 0.7)
+    alone = np.array([candidates.arm_evidence(img, p[None], +1, 8.0, 1.0, 0.7)[0]
+                      for p in pts])
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < 120) & (pts[:, 1] >= 0) & (pts[:, 1] < 90)
+    assert np.isfinite(whole).sum() == inside.sum() > 30
+    fin = np.isfinite(whole)
+    assert np.array_equal(fin, np.isfinite(chunked)) and np.array_equal(fin, np.isfinite(alone))
+    assert np.abs(whole[fin] - chunked[fin]).max() < 1e-4
+    assert np.abs(whole[fin] - alone[fin]).max() < 1e-4
+
+
 @pytest.mark.parametrize("seed", [10, 37])
 def test_a_3x3_reseau_over_a_busy_scene_is_not_refused(seed):
     """Pentax 645 (3 x 3 crosses) over a busy scene, half-turned: faint crosses correlate no

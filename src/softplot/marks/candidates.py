@@ -160,15 +160,6 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
     ok = (x0 >= 0) & (x0 < W) & (y0 >= 0) & (y0 < Hh)
     if not ok.any():
         return out
-    p = xy[ok]
-    # each point's neighbourhood once (float32 grey, the scan's edge rows and columns
-    # repeated beyond it: an arm across the edge keeps its contrast, one along it has none),
-    # then bilinear reads in it
-    ar = np.arange(-reach, reach + 2)
-    cy = np.clip(y0[ok][:, None] + ar, 0, Hh - 1)
-    cx = np.clip(x0[ok][:, None] + ar, 0, W - 1)
-    win = np.asarray(g[cy[:, :, None], cx[:, None, :]], np.float32)  # (k, n, n)
-    fx, fy = p[:, 0] - x0[ok] + reach, p[:, 1] - y0[ok] + reach  # the point in its window
     # the offsets of every read: (turns, 4 arms, line / flank / flank, radii, 2)
     t = np.radians(turn_deg + ARM_TURNS)[:, None] + np.arange(4) * (np.pi / 2)
     u = np.stack([np.cos(t), np.sin(t)], -1)  # (T, 4, 2)
@@ -176,6 +167,32 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
     side = np.array([0.0, d, -d])
     off = (r[None, None, None, :, None] * u[:, :, None, None, :]
            + side[None, None, :, None, None] * nrm[:, :, None, None, :])
+    idx = np.flatnonzero(ok)
+    best = np.empty(len(idx))
+    for a in range(0, len(idx), ARM_CHUNK):  # a bounded working set, whatever the count
+        i = idx[a:a + ARM_CHUNK]
+        best[a:a + ARM_CHUNK] = _arm_reads(g, xy[i], x0[i], y0[i], reach, off, sign)
+    out[ok] = best
+    return out
+
+
+#: points whose arms :func:`arm_evidence` reads at once (their windows and reads, about
+#: 2 MB at a 20-px reach)
+ARM_CHUNK = 256
+
+
+def _arm_reads(g, p, x0, y0, reach, off, sign) -> np.ndarray:
+    """:func:`arm_evidence` of the points ``p`` (k, 2) (overview pixel system, ``x0``/``y0``
+    their floors, inside ``g``) with the read offsets ``off`` (T, 4, 3, radii, 2)."""
+    Hh, W = g.shape
+    # each point's neighbourhood once (float32 grey, the scan's edge rows and columns
+    # repeated beyond it: an arm across the edge keeps its contrast, one along it has none),
+    # then bilinear reads in it
+    ar = np.arange(-reach, reach + 2)
+    cy = np.clip(y0[:, None] + ar, 0, Hh - 1)
+    cx = np.clip(x0[:, None] + ar, 0, W - 1)
+    win = np.asarray(g[cy[:, :, None], cx[:, None, :]], np.float32)  # (k, n, n)
+    fx, fy = p[:, 0] - x0 + reach, p[:, 1] - y0 + reach  # the point in its window
     v = _read(win, fx, fy, off.reshape(-1, 2)).reshape((len(p),) + off.shape[:4])
     v = v.mean(-1)  # (k, T, 4, 3): mean grey along each arm and its flanks
     d1, d2 = v[..., 0] - v[..., 1], v[..., 0] - v[..., 2]
@@ -185,9 +202,7 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
     # three arms, or one bar (two opposite arms: a one-armed cross, or a scene line) at
     # half weight
     bar = np.maximum(np.minimum(a[..., 0], a[..., 2]), np.minimum(a[..., 1], a[..., 3]))
-    best = np.maximum(third, 0.5 * bar).max(1)
-    out[ok] = best
-    return out
+    return np.maximum(third, 0.5 * bar).max(1)
 
 
 def _read(win, fx, fy, off) -> np.ndarray:
