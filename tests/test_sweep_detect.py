@@ -358,3 +358,43 @@ def test_truth_of_a_jpeg_case_says_it_is_a_jpeg(tmp_path):
         truth = render_case(case, tmp_path)[1]
         assert truth["spec"]["file_format"] == "jpeg"
         assert truth["spec"]["jpeg_quality"] == case.jpeg
+
+
+def test_one_armed_crosses_are_scored_along_their_bar_too():
+    """A one-armed cross (or a lone bar measured on a cross) is scored across its bar against
+    its bound, and along it by its normalised error: a position along the bar 3 sigma off
+    shows as 3, not hidden by the across-bar figures."""
+    from types import SimpleNamespace
+
+    from softplot.synthetic import ScanSpec
+    from softplot.synthetic.sweep import aggregate, misses, score
+
+    _, truth = render_scan("rollei-6006", ScanSpec(dpi=400, one_armed=6), 3)
+    ms = truth["marks"]
+    xy = np.array([[m["x"], m["y"]] for m in ms])
+    one = [i for i, m in enumerate(ms) if m["arms"] == 1 and m["state"] == "visible"
+           and not m["damaged"]]
+    two = next(i for i, m in enumerate(ms) if m["arms"] == 2 and m["state"] == "visible"
+               and not m["damaged"])
+    assert len(one) >= 3
+    cov = np.tile(np.diag([1e-4, 1e-4]), (len(ms), 1, 1))
+    arms = np.full(len(ms), 2)
+    for i in one + [two]:  # lone bars: along x (pixel system) 0.5 px, across 0.01 px
+        cov[i] = np.diag([0.25, 1e-4])
+        arms[i] = 1
+    det = SimpleNamespace(
+        name=[m["name"] for m in ms], kind=["reseau"] * len(ms), status=["measured"] * len(ms),
+        reason=[""] * len(ms), xy=xy.copy(), cov=cov, arms=arms)
+    bounds = {m["name"]: 0.01 for m in ms}
+    exact = score(det, truth, bounds)
+    assert len(exact.z2_along) == len(one) + 1 and max(exact.z2_along) < 1e-20
+    det.xy[two] += (1.5, 0.0)  # 3 sigma along the lone bar
+    sc = score(det, truth, bounds)
+    assert max(sc.z2_along) == pytest.approx(9.0)
+    row = aggregate([(make_case(0), sc)])["all"]
+    assert row["z_along_rms"] == pytest.approx(np.sqrt(9.0 / len(sc.z2_along)))
+    assert not any("along the bar" in m for m in misses(row))
+    det.xy[two] += (2.0, 0.0)  # 7 sigma: the pooled figure goes above 1.5, a miss
+    row = aggregate([(make_case(0), score(det, truth, bounds))])["all"]
+    assert row["z_along_rms"] > 1.5
+    assert any("along the bar" in m for m in misses(row))

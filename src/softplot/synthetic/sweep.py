@@ -329,6 +329,7 @@ class Score:
     err2_1: list = field(default_factory=list)
     crb2_1: list = field(default_factory=list)
     z2: list = field(default_factory=list)
+    z2_along: list = field(default_factory=list)
     seconds: float = 0.0
     ambiguous_truth: str = ""
     ids_ambiguous: bool = False
@@ -346,7 +347,7 @@ class Score:
                 # what the per-condition pools need (count, sum), for merging runs
                 "pool": {k: [len(v), float(np.sum(v))] for k, v in (
                     ("err2", self.err2), ("crb2", self.crb2), ("err2_1", self.err2_1),
-                    ("crb2_1", self.crb2_1), ("z2", self.z2))}}
+                    ("crb2_1", self.crb2_1), ("z2", self.z2), ("z2_along", self.z2_along))}}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Score":
@@ -478,7 +479,9 @@ def score(det, truth: dict, bounds: dict, ambiguous: str = "") -> Score:
     * gross: measured more than ``max(1 px, 8 x its bound)`` from its own truth (not wrong;
       listed, and in the RMS like every other measured cross);
     * claimed: measured where the truth has no cross to see (dark, covered, outside) and not
-      on another cross.
+      on another cross;
+    * one-armed (the truth's, or a lone bar the detection measured on a cross): the error
+      across the bar against the bound, and along it the normalised error (``z2_along``).
 
     ``ambiguous`` (:func:`identifiable`'s reason) says that the render cannot show its rows
     and columns. If the detection then says so too (:func:`ids_flagged`), a cross measured on
@@ -543,11 +546,13 @@ def score(det, truth: dict, bounds: dict, ambiguous: str = "") -> Score:
         sc.measured += 1
         C = (np.asarray(cov[i], float).reshape(2, 2) if cov is not None
              else np.diag(np.square(np.asarray(det.sigma_xy[i], float))))
+        lone = int(getattr(det, "arms", [2] * len(names))[i]) == 1
         if t["arms"] == 1:  # across the bar only
             along = mp.jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][:, 0 if
                                                                            t["arm_axis"] == "x"
                                                                            else 1]
             nrm = np.array([-along[1], along[0]]) / np.hypot(*along)
+            _along_z(sc, e, C, along / np.hypot(*along))
             ea = float(e @ nrm)
             if np.isfinite(b):
                 sc.err2_1.append(ea * ea)
@@ -556,6 +561,8 @@ def score(det, truth: dict, bounds: dict, ambiguous: str = "") -> Score:
             if var > 0:
                 sc.z2.append(ea * ea / var)
         else:
+            if lone:  # a lone bar measured on a cross: along it, the neighbours' guess
+                _along_z(sc, e, C, None)
             if np.isfinite(b):
                 sc.err2.append(float(e @ e) / 2)
                 sc.crb2.append(b * b)
@@ -565,6 +572,19 @@ def score(det, truth: dict, bounds: dict, ambiguous: str = "") -> Score:
         if m["state"] == "visible" and not m["damaged"] and m["name"] not in done:
             sc.missed.append(f"{m['name']}: {status.get(m['name'], 'not listed')}")
     return sc
+
+
+def _along_z(sc: Score, e: np.ndarray, C: np.ndarray, along: np.ndarray | None) -> None:
+    """The squared normalised error along a bar (its unit vector ``along``, pixel system; None:
+    the axis along which the covariance ``C`` is largest, a lone bar's) into ``sc.z2_along``:
+    a one-armed cross's position along its bar must be no more certain than it is."""
+    if not np.isfinite(C).all():
+        return
+    if along is None:
+        along = np.linalg.eigh(C)[1][:, -1]
+    var = float(along @ C @ along)
+    if var > 0:
+        sc.z2_along.append(float(e @ along) ** 2 / var)
 
 
 def _loss_at_marks(diff: np.ndarray, truth: dict) -> float:
@@ -731,6 +751,7 @@ def aggregate(results: list[tuple[Case, Score]]) -> dict[str, dict]:
         e1 = sum((s.err2_1 for s in scs), [])
         c1 = sum((s.crb2_1 for s in scs), [])
         z2 = sum((s.z2 for s in scs), [])
+        za = sum((s.z2_along for s in scs), [])
         vis = sum(s.visible for s in scs if s.result)
         vis_all = sum(s.visible for s in scs)
         rms = math.sqrt(np.mean(err2)) if err2 else float("nan")
@@ -752,6 +773,7 @@ def aggregate(results: list[tuple[Case, Score]]) -> dict[str, dict]:
             "ambiguous_warned": sum(bool(s.ambiguous_truth) and s.ids_ambiguous for s in scs),
             "one_arm": len(e1), "rms1_over_crb1": rms1 / crb1 if e1 else float("nan"),
             "z_rms": math.sqrt(np.mean(z2)) if z2 else float("nan"),
+            "z_along_rms": math.sqrt(np.mean(za)) if za else float("nan"),
         }
     return out
 
@@ -779,6 +801,9 @@ def misses(row: dict) -> list[str]:
     lo, hi = TARGETS["z_rms"]
     if np.isfinite(row["z_rms"]) and not lo <= row["z_rms"] <= hi:
         out.append(f"normalised-error RMS {row['z_rms']:.2f}")
+    za = row.get("z_along_rms", float("nan"))
+    if np.isfinite(za) and za > hi:  # along a bar, too large a sigma is honest
+        out.append(f"one-armed normalised error along the bar {za:.2f}")
     return out
 
 
@@ -789,7 +814,7 @@ def table(agg: dict[str, dict]) -> str:
 
     head = ("| condition | scans | result | visible | measured | wrong row/col | claims on "
             "invisible | ambiguous: warned | gross | RMS px | CRB px | RMS/CRB | one-armed: n, "
-            "RMS/CRB across | normalised-error RMS |\n"
+            "RMS/CRB across, normalised error along | normalised-error RMS |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for name, r in agg.items():
@@ -799,5 +824,6 @@ def table(agg: dict[str, dict]) -> str:
             f"{r['claimed']} | {r['ambiguous_warned']} of {r['ambiguous']} | {r['gross']} | "
             f"{f(r['rms_px'], '%.4f')} | "
             f"{f(r['crb_px'], '%.4f')} | {f(r['rms_over_crb'], '%.2f')} | {r['one_arm']}, "
-            f"{f(r['rms1_over_crb1'], '%.2f')} | {f(r['z_rms'], '%.2f')} |")
+            f"{f(r['rms1_over_crb1'], '%.2f')}, {f(r.get('z_along_rms'), '%.2f')} | "
+            f"{f(r['z_rms'], '%.2f')} |")
     return "\n".join(lines)
