@@ -169,9 +169,17 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
            + side[None, None, :, None, None] * nrm[:, :, None, None, :])
     idx = np.flatnonzero(ok)
     best = np.empty(len(idx))
+    # the stored image (an overview's native grey levels) with its edge rows and columns
+    # repeated beyond it: each point's window is a slice of it
+    src, grey = (g.q, g.grey) if isinstance(g, coarse.Overview) else (np.asarray(g), None)
+    wins = np.lib.stride_tricks.sliding_window_view(
+        np.pad(src, ((reach, reach + 1), (reach, reach + 1)), mode="edge"),
+        (2 * reach + 2, 2 * reach + 2))
     for a in range(0, len(idx), ARM_CHUNK):  # a bounded working set, whatever the count
         i = idx[a:a + ARM_CHUNK]
-        best[a:a + ARM_CHUNK] = _arm_reads(g, xy[i], x0[i], y0[i], reach, off, sign)
+        win = wins[y0[i], x0[i]]  # (k, n, n), the stored values
+        win = grey(win) if grey is not None else np.asarray(win, np.float32)
+        best[a:a + ARM_CHUNK] = _arm_reads(win, xy[i], x0[i], y0[i], reach, off, sign)
     out[ok] = best
     return out
 
@@ -181,24 +189,29 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
 ARM_CHUNK = 256
 
 
-def _arm_reads(g, p, x0, y0, reach, off, sign) -> np.ndarray:
+def _arm_reads(win, p, x0, y0, reach, off, sign) -> np.ndarray:
     """:func:`arm_evidence` of the points ``p`` (k, 2) (overview pixel system, ``x0``/``y0``
-    their floors, inside ``g``) with the read offsets ``off`` (T, 4, 3, radii, 2)."""
-    Hh, W = g.shape
-    # each point's neighbourhood once (float32 grey, the scan's edge rows and columns
-    # repeated beyond it: an arm across the edge keeps its contrast, one along it has none),
-    # then bilinear reads in it
-    ar = np.arange(-reach, reach + 2)
-    cy = np.clip(y0[:, None] + ar, 0, Hh - 1)
-    cx = np.clip(x0[:, None] + ar, 0, W - 1)
-    win = np.asarray(g[cy[:, :, None], cx[:, None, :]], np.float32)  # (k, n, n)
+    their floors, inside the image) from their windows ``win`` (k, n, n) (float32 grey, rows
+    and columns ``y0 - reach ..``, ``x0 - reach ..``, the image's edge rows and columns
+    repeated beyond it: an arm across the edge keeps its contrast, one along it has none),
+    read bilinearly at the offsets ``off`` (T, 4, 3, radii, 2)."""
     fx, fy = p[:, 0] - x0 + reach, p[:, 1] - y0 + reach  # the point in its window
-    v = _read(win, fx, fy, off.reshape(-1, 2)).reshape((len(p),) + off.shape[:4])
-    v = v.mean(-1)  # (k, T, 4, 3): mean grey along each arm and its flanks
+    # the radii outermost: the mean along each arm adds whole slices (the sum in the order
+    # of ``mean(-1)``, the same values)
+    nr = off.shape[3]
+    v = _read(win, fx, fy, np.moveaxis(off, 3, 0).reshape(-1, 2)).reshape(len(p), nr, -1)
+    s = v[:, 0].copy()
+    for i in range(1, nr):
+        s += v[:, i]
+    v = (s / np.float32(nr)).reshape((len(p),) + off.shape[:3])
+    # (k, T, 4, 3): mean grey along each arm and its flanks
     d1, d2 = v[..., 0] - v[..., 1], v[..., 0] - v[..., 2]
     # above both flanks: a step edge along or across the arm is not a line
     a = sign * np.where(sign > 0, np.minimum(d1, d2), np.maximum(d1, d2))  # (k, T, 4)
-    third = np.sort(a, axis=2)[..., 1]
+    # the second smallest of the four arms (``np.sort(a, axis=2)[..., 1]``)
+    lo = np.maximum(np.minimum(a[..., 0], a[..., 1]), np.minimum(a[..., 2], a[..., 3]))
+    hi = np.minimum(np.maximum(a[..., 0], a[..., 1]), np.maximum(a[..., 2], a[..., 3]))
+    third = np.minimum(lo, hi)
     # three arms, or one bar (two opposite arms: a one-armed cross, or a scene line) at
     # half weight
     bar = np.maximum(np.minimum(a[..., 0], a[..., 2]), np.minimum(a[..., 1], a[..., 3]))
@@ -214,13 +227,14 @@ def _read(win, fx, fy, off) -> np.ndarray:
     k, n = win.shape[0], win.shape[1]
     out = np.empty((k, len(off)), np.float32)
     step = max(1, 30000 // n)
+    ox, oy = off[:, 0].astype(np.float32), off[:, 1].astype(np.float32)
     for a in range(0, k, step):
         b = min(a + step, k)
         img = win[a:b].reshape(-1, n)
-        mx = fx[a:b, None].astype(np.float32) + off[None, :, 0].astype(np.float32)
-        my = ((fy[a:b] + n * np.arange(b - a))[:, None].astype(np.float32)
-              + off[None, :, 1].astype(np.float32))
-        out[a:b] = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mx = fx[a:b, None].astype(np.float32) + ox
+        my = (fy[a:b] + n * np.arange(b - a))[:, None].astype(np.float32) + oy
+        cv2.remap(img, mx, my, cv2.INTER_LINEAR, dst=out[a:b],
+                  borderMode=cv2.BORDER_REPLICATE)
     return out
 
 
