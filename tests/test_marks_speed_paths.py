@@ -68,3 +68,91 @@ def test_arm_evidence_is_the_plain_formulation(sign, monkeypatch):
             plain = _arm_evidence_plain(image, pts, sign, 8.0, 1.0, 0.7, turn)
             assert np.isfinite(fast).sum() > 80
             assert np.array_equal(fast, plain)
+
+
+def _local_solve_plain(D, w, vals, tol=1e-6):
+    """:func:`kernels.local_solve` as first written (plain Python, the same IEEE double
+    arithmetic as the compiled kernel, which is not built with fast-math): one sum over the
+    neighbours at a time, the normalisation's roots taken per entry."""
+    from softplot.marks import kernels
+
+    chol = kernels._chol_above.py_func
+    pivot = kernels._pivot.py_func
+    R, k, C = vals.shape
+    Q, _, p = D.shape
+    out = np.empty((R, C))
+    level = np.empty(R, np.int64)
+    N0, Nn, W = np.empty((p, p)), np.empty((p, p)), np.empty((p, p))
+    A = np.empty((p, p + C))
+    for r in range(R):
+        Dq = D[r % Q]
+        for a in range(p):
+            for b in range(a, p):
+                t = 0.0
+                for i in range(k):
+                    t += float(Dq[i, a]) * float(w[r, i]) * float(Dq[i, b])
+                N0[a, b] = N0[b, a] = t
+        for a in range(p):
+            for b in range(p):
+                Nn[a, b] = N0[a, b] / (np.sqrt(max(N0[a, a], 1e-300))
+                                       * np.sqrt(max(N0[b, b], 1e-300)))
+        if chol(Nn, p, tol, W):
+            lev = p
+        else:
+            lev = 0
+            for L in (3, 6, 10):
+                if L >= p or not chol(Nn, L, tol, W):
+                    break
+                lev = L
+        level[r] = lev
+        use = max(lev, 3)
+        for a in range(p):
+            for b in range(p):
+                A[a, b] = N0[a, b] if (a < use and b < use) else 0.0
+            A[a, a] += 1e-9 if a < use else 1.0 + 1e-9
+            for c in range(C):
+                t = 0.0
+                if a < use:
+                    for i in range(k):
+                        t += float(Dq[i, a]) * float(w[r, i]) * float(vals[r, i, c])
+                A[a, p + c] = t
+        for c in range(p):
+            piv, _ = pivot(A, c, p)
+            if piv != c:
+                A[[c, piv]] = A[[piv, c]]
+            for a in range(c + 1, p):
+                f = A[a, c] / A[c, c]
+                if f != 0.0:
+                    A[a, c:] -= f * A[c, c:]
+        for c in range(C):
+            for a in range(p - 1, -1, -1):
+                t = A[a, p + c]
+                for b in range(a + 1, p):
+                    t -= A[a, b] * A[b, p + c]
+                A[a, p + c] = t / A[a, a]
+            out[r, c] = A[0, p + c]
+    return out, level
+
+
+@pytest.mark.parametrize("p", [3, 6, 10])
+def test_compiled_local_solve_is_the_plain_loop(p):
+    """The compiled local fits (the neighbours' sums four at a time, the normalisation's
+    roots once per fit) give the plain loop's figures bit for bit: random designs and
+    weights, each degree, with rows whose neighbours are collinear (the degree drops)."""
+    from softplot.marks import kernels
+
+    if not kernels.ready():
+        pytest.skip("numba not available")
+    rng = np.random.default_rng(p)
+    Q, k, C = 7, 16 if p < 10 else 24, 3
+    X, Y = rng.normal(0, 1.5, (2, Q, k))
+    Y[2] = 0.5 * X[2]  # collinear neighbours: no plane beyond a line
+    Y[4] = np.round(Y[4])  # a few rows of neighbours: no cubic in y
+    cols = [np.ones_like(X), X, Y, X**2, X * Y, Y**2, X**3, X**2 * Y, X * Y**2, Y**3][:p]
+    D = np.stack(cols, -1)
+    w = rng.uniform(0.05, 1.0, (3 * Q, k))
+    vals = rng.normal(0, 1, (3 * Q, k, C))
+    got, lev = kernels.local_solve(D, w, vals)
+    ref, lev_ref = _local_solve_plain(D, w, vals)
+    assert np.array_equal(lev, lev_ref) and lev.min() < p
+    assert np.array_equal(got, ref)

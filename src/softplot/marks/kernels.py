@@ -879,19 +879,35 @@ def _local_solve(D, w, vals, tol, out, level):
     Nn = np.empty((p, p))
     A = np.empty((p, p + C))
     W = np.empty((p, p))
+    sq = np.empty(p)
+    Dw = np.empty((k, p))
     for r in range(R):
         Dq = D[r % Q]
+        for i in range(k):
+            for a in range(p):
+                Dw[i, a] = Dq[i, a] * w[r, i]
+        # each sum over the neighbours in the order i = 0 .. k - 1, four sums at a time
+        # (independent chains; the last group's spare ones repeat column p - 1)
         for a in range(p):
-            for b in range(a, p):
-                t = 0.0
+            for b in range(a, p, 4):
+                b1, b2, b3 = min(b + 1, p - 1), min(b + 2, p - 1), min(b + 3, p - 1)
+                t0 = t1 = t2 = t3 = 0.0
                 for i in range(k):
-                    t += Dq[i, a] * w[r, i] * Dq[i, b]
-                N0[a, b] = t
-                N0[b, a] = t
+                    x = Dw[i, a]
+                    t0 += x * Dq[i, b]
+                    t1 += x * Dq[i, b1]
+                    t2 += x * Dq[i, b2]
+                    t3 += x * Dq[i, b3]
+                N0[a, b] = t0
+                N0[b1, a] = N0[a, b1] = t1
+                N0[b2, a] = N0[a, b2] = t2
+                N0[b3, a] = N0[a, b3] = t3
+                N0[b, a] = t0
+        for a in range(p):  # the diagonal's roots once (p roots, not 2 p^2)
+            sq[a] = np.sqrt(max(N0[a, a], 1e-300))
         for a in range(p):
             for b in range(p):
-                Nn[a, b] = N0[a, b] / (np.sqrt(max(N0[a, a], 1e-300))
-                                       * np.sqrt(max(N0[b, b], 1e-300)))
+                Nn[a, b] = N0[a, b] / (sq[a] * sq[b])
         # the highest degree its neighbours determine (terms 3 plane, 6, 10; 0 none)
         if _chol_above(Nn, p, tol, W):
             lev = p
@@ -909,11 +925,22 @@ def _local_solve(D, w, vals, tol, out, level):
                 A[a, b] = N0[a, b] if (a < use and b < use) else 0.0
             A[a, a] += 1e-9 if a < use else 1.0 + 1e-9
             for c in range(C):
-                t = 0.0
-                if a < use:
-                    for i in range(k):
-                        t += Dq[i, a] * w[r, i] * vals[r, i, c]
-                A[a, p + c] = t
+                A[a, p + c] = 0.0
+        # the right-hand sides, as the normal equations' sums: four at a time
+        for c in range(C):
+            for a in range(0, use, 4):
+                a1, a2, a3 = min(a + 1, use - 1), min(a + 2, use - 1), min(a + 3, use - 1)
+                t0 = t1 = t2 = t3 = 0.0
+                for i in range(k):
+                    v = vals[r, i, c]
+                    t0 += Dw[i, a] * v
+                    t1 += Dw[i, a1] * v
+                    t2 += Dw[i, a2] * v
+                    t3 += Dw[i, a3] * v
+                A[a, p + c] = t0
+                A[a1, p + c] = t1
+                A[a2, p + c] = t2
+                A[a3, p + c] = t3
         # Gaussian elimination with partial pivoting, then back substitution
         for c in range(p):
             piv, best = _pivot(A, c, p)
