@@ -156,3 +156,36 @@ def test_compiled_local_solve_is_the_plain_loop(p):
     ref, lev_ref = _local_solve_plain(D, w, vals)
     assert np.array_equal(lev, lev_ref) and lev.min() < p
     assert np.array_equal(got, ref)
+
+
+@pytest.mark.parametrize("Q", [150, 61])
+def test_local_solve_split_over_two_threads_is_the_same(Q, monkeypatch):
+    """A large batch of local fits solved in two parts on two threads (one design per row,
+    ``Q == R``, or designs shared by the rows of a batch of value sets) gives the figures of
+    the single pass bit for bit."""
+    from softplot import runtime
+    from softplot.marks import kernels
+
+    if not kernels.ready():
+        pytest.skip("numba not available")
+    monkeypatch.setattr(kernels, "SPLIT_ROWS", 100)
+    rng = np.random.default_rng(Q)
+    k = 16
+    X, Y = rng.normal(0, 1.5, (2, Q, k))
+    D = np.stack([np.ones_like(X), X, Y, X**2, X * Y, Y**2], -1)
+    R = Q if Q > 100 else 5 * Q
+    w = rng.uniform(0.05, 1.0, (R, k))
+    vals = rng.normal(0, 1, (R, k, 2))
+    try:
+        runtime.set_threads(1)
+        one, lev1 = kernels.local_solve(D, w, vals)
+        runtime.set_threads(2)
+        used = []
+        orig = kernels._local_solve
+        monkeypatch.setattr(kernels, "_local_solve", lambda *a: (used.append(len(a[1])),
+                                                                 orig(*a)))
+        two, lev2 = kernels.local_solve(D, w, vals)
+    finally:
+        runtime.set_threads(None)
+    assert sorted(used) == ([R // 2, R - R // 2] if Q == R else [2 * Q, 3 * Q])
+    assert np.array_equal(one, two) and np.array_equal(lev1, lev2)
