@@ -45,6 +45,26 @@ def _arm_evidence_plain(image, xy, sign, arm_half, width, s, turn_deg=0.0):
     return out
 
 
+def test_arm_evidence_on_two_threads_is_the_same(monkeypatch):
+    """The arms' evidence read a chunk at a time on two threads equals the one thread's bit
+    for bit (the chunks are independent)."""
+    from softplot import runtime
+
+    rng = np.random.default_rng(4)
+    img = rng.uniform(0.3, 0.6, (80, 100)).astype(np.float32)
+    pts = np.column_stack([rng.uniform(-3, 103, 300), rng.uniform(-3, 83, 300)])
+    monkeypatch.setattr(candidates, "ARM_CHUNK", 16)
+    try:
+        runtime.set_threads(1)
+        one = candidates.arm_evidence(img, pts, 1, 8.0, 1.0, 0.7)
+        runtime.set_threads(2)
+        two = candidates.arm_evidence(img, pts, 1, 8.0, 1.0, 0.7)
+    finally:
+        runtime.set_threads(None)
+    assert np.isfinite(one).sum() > 250
+    assert np.array_equal(one, two)
+
+
 @pytest.mark.parametrize("sign", [1, -1])
 def test_arm_evidence_is_the_plain_formulation(sign, monkeypatch):
     """On a float image and on a compact 8-bit overview (inverted grey), points inside, at

@@ -20,6 +20,7 @@ from softplot.marks import coarse
 from softplot.marks.common import polarity_signs
 from softplot.marks.overview import ReseauOverview
 from softplot.marks.template import MarkShape, cross_shape
+from softplot.runtime import thread_map
 
 __all__ = ["Candidates", "reseau_candidates", "crosses_in", "arm_evidence", "arm_scored",
            "peaks_kept", "search_map",
@@ -175,11 +176,14 @@ def arm_evidence(image, xy, sign: int, arm_half: float, width: float, s: float,
     wins = np.lib.stride_tricks.sliding_window_view(
         np.pad(src, ((reach, reach + 1), (reach, reach + 1)), mode="edge"),
         (2 * reach + 2, 2 * reach + 2))
-    for a in range(0, len(idx), ARM_CHUNK):  # a bounded working set, whatever the count
+
+    def chunk(a):  # a bounded working set, whatever the count
         i = idx[a:a + ARM_CHUNK]
         win = wins[y0[i], x0[i]]  # (k, n, n), the stored values
         win = grey(win) if grey is not None else np.asarray(win, np.float32)
         best[a:a + ARM_CHUNK] = _arm_reads(win, xy[i], x0[i], y0[i], reach, off, sign)
+
+    thread_map(chunk, range(0, len(idx), ARM_CHUNK))  # independent: on the threads
     out[ok] = best
     return out
 
