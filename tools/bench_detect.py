@@ -48,16 +48,18 @@ Stages (``--stages``): the busy scans' detection, wall and CPU time of each stag
 measurement, validation; CPU of the whole process, so on two threads both threads' time),
 medians of ``--runs``.
 
-Two versions (``--compare SRC``): the busy scans detected by this checkout's code and by
-the code under ``SRC`` in two worker processes side by side, alternating detection by
-detection (each warmed up on each scan first), CPU and wall time of load + detect: on a
-machine shared with other work both versions see the same load.
+Two versions (``--compare SRC``): the busy scans (``--scene texture``: the textured ones of
+the default cases) detected by this checkout's code and by the code under ``SRC`` in two
+worker processes side by side, alternating detection by detection (each warmed up on each
+scan first), CPU and wall time of load + detect: on a machine shared with other work both
+versions see the same load.
 
 Usage::
 
     .venv/bin/python tools/bench_detect.py [--runs 5] [--cases rollei-2400,rollei-1200,aerial-19k]
     .venv/bin/python tools/bench_detect.py --busy [--runs 11] [--batch 8] [--threads 1]
     .venv/bin/python tools/bench_detect.py --compare OTHER/src [--runs 8] [--threads 1]
+        [--scene texture]
     .venv/bin/python tools/bench_detect.py --threads-alternate [--runs 8]
     .venv/bin/python tools/bench_detect.py --stages [--runs 7] [--threads 2]
 """
@@ -384,18 +386,19 @@ def _worker(n_threads: int) -> None:
         print(time.process_time() - c, time.perf_counter() - t, flush=True)
 
 
-def compare(other: str, runs: int, n_threads: int) -> None:
+def compare(other: str, runs: int, n_threads: int, scene: str = "busy") -> None:
     """``--compare SRC``: this checkout's code and the code under ``SRC`` (another version's
     ``src`` folder) in two processes side by side, alternating detection by detection on the
-    busy scans (default scene model): on a shared machine both see the same load."""
+    busy scans (``scene`` "texture": the textured ones; default scene model): on a shared
+    machine both see the same load."""
     from softplot.synthetic import ScanSpec, write_scan
 
     here = str(Path(__file__).resolve().parents[1] / "src")
     with tempfile.TemporaryDirectory(prefix="bench_cmp_") as tmp:
         d = Path(tmp)
         scans = {dpi: write_scan(d, "rollei-6006", ScanSpec(dpi=dpi, rotation_deg=1.5,
-                                                             scene="busy"), seed=7,
-                                 stem=f"busy-{dpi}")[0] for dpi in (1200, 2400)}
+                                                             scene=scene), seed=7,
+                                 stem=f"{scene}-{dpi}")[0] for dpi in (1200, 2400)}
         procs = {}
         for name, src in (("other", other), ("this", here)):
             env = dict(os.environ, PYTHONPATH=src)
@@ -419,7 +422,7 @@ def compare(other: str, runs: int, n_threads: int) -> None:
             p.stdin.close()
             p.wait()
         for (n, dpi), (c, t) in res.items():
-            print(f"busy {dpi} dpi, {n} ({other if n == 'other' else here}): CPU median "
+            print(f"{scene} {dpi} dpi, {n} ({other if n == 'other' else here}): CPU median "
                   f"{statistics.median(c):.3f} s (min {min(c):.3f}), wall median "
                   f"{statistics.median(t):.3f} s (min {min(t):.3f}), n={len(c)}")
     print(f"load average at end: {_load()}")
@@ -437,6 +440,8 @@ def main() -> None:
     ap.add_argument("--compare", metavar="SRC",
                     help="the busy scans, this code against the code under SRC (another "
                          "version's src folder), alternating in two processes")
+    ap.add_argument("--scene", default="busy", choices=("busy", "texture"),
+                    help="--compare: the busy scans (default) or the textured ones")
     ap.add_argument("--threads-alternate", action="store_true",
                     help="the busy scans on one and two threads, alternating in this process")
     ap.add_argument("--stages", action="store_true",
@@ -455,7 +460,7 @@ def main() -> None:
         alternate(a.runs)
         return
     if a.compare:
-        compare(a.compare, a.runs, a.threads or 1)
+        compare(a.compare, a.runs, a.threads or 1, a.scene)
         return
     if a.stages:
         stage_times(a.runs, a.threads or 1)
