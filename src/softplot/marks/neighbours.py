@@ -66,14 +66,16 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     if n_dev is not None:
         n_dev = np.asarray(n_dev, float).reshape(B, -1)
         spread = 1.4826 * np.median(n_dev, axis=1) + 1e-12  # (B,)
-        w = w / (1.0 + (n_dev[:, j] / (3.0 * spread[:, None, None])) ** 2)  # (B, Q, k)
+        # (np.take: the same gather as ``n_dev[:, j]``, several times faster)
+        w = w / (1.0 + (np.take(n_dev, j, axis=1) / (3.0 * spread[:, None, None])) ** 2)
         w = w.reshape(B * Q, k)
     # else the same weights for every value set: one fit, its columns the sets' values
     C = n_val.shape[-1]
+    nj = np.take(n_val, j, axis=1)  # n_val[:, j] (B, Q, k, C)
     if n_dev is not None:  # (B * Q, k, C)
-        vals = n_val[:, j].reshape(B * Q, k, C)
+        vals = nj.reshape(B * Q, k, C)
     else:  # (Q, k, B * C)
-        vals = n_val[:, j].transpose(1, 2, 0, 3).reshape(Q, k, B * C)
+        vals = nj.transpose(1, 2, 0, 3).reshape(Q, k, B * C)
     if gradient or not kernels.ready():  # row r of a batch: design D[r % Q]
         Dr = D if len(w) == Q else np.broadcast_to(D, (B,) + D.shape).reshape(B * Q, k, -1)
         coef, level, DwT, N = _solve(Dr, w, vals)
