@@ -209,3 +209,32 @@ def test_local_solve_split_over_two_threads_is_the_same(Q, monkeypatch):
         runtime.set_threads(None)
     assert sorted(used) == ([R // 2, R - R // 2] if Q == R else [2 * Q, 3 * Q])
     assert np.array_equal(one, two) and np.array_equal(lev1, lev2)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_patches_are_the_pixelwise_gather(dtype):
+    """The measurement's windows (``measure.patches``: the wholly inside ones each a slice of
+    the scan) hold the scan's grey values of a pixel-by-pixel gather exactly, those cut by the
+    scan's edge NaN beyond it, and their origins."""
+    from softplot.io import Scan
+    from softplot.marks.measure import patches
+
+    rng = np.random.default_rng(2)
+    top = np.iinfo(dtype).max
+    data = rng.integers(0, top, (70, 90), dtype=dtype, endpoint=True)
+    sc = Scan.from_array(data)
+    c = np.array([[30.4, 20.6], [45.0, 40.0], [3.0, 5.0], [88.0, 66.0], [60.2, 30.9]])
+    half = 9
+    stack, origin = patches(sc, c, half)
+    size = 2 * half + 1
+    o = np.round(c).astype(int) - half
+    assert np.array_equal(origin, o.astype(float))
+    ar = np.arange(size)
+    for i in range(len(c)):
+        rr, cc = o[i, 1] + ar, o[i, 0] + ar
+        inside = ((rr >= 0) & (rr < 70))[:, None] & ((cc >= 0) & (cc < 90))[None, :]
+        ref = np.full((size, size), np.nan, np.float32)
+        vals = data[np.clip(rr, 0, 69)[:, None], np.clip(cc, 0, 89)[None, :]]
+        ref[inside] = (vals * np.float32(1.0 / top))[inside]
+        assert np.array_equal(stack[i], ref, equal_nan=True)
+    assert np.isnan(stack[2]).any() and np.isfinite(stack[[0, 1, 4]]).all()
