@@ -302,7 +302,10 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         dp = np.asarray(drop_part)
         keep = _parts(shape, u, v) != (dp[:, None, None] if dp.ndim else dp)
         wt = np.where(keep, 1.0 if wt is None else wt, 0.0).astype(np.float32)
-    cross = scene and shape.kind == "cross" and bool(np.isfinite(stack).all())
+    # a patch the scan's edge cuts (NaN pixels) has no scene figure and no joint scene; the
+    # set's other crosses have theirs (one such patch in a chunk took them from all of it)
+    whole = np.isfinite(stack).reshape(len(c0), -1).all(1)
+    cross = scene and shape.kind == "cross" and bool(whole.any())
     top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
     del grad  # not held through LSM (the fine stage's peak memory)
     res = first if first is not None else _lsm(
@@ -312,10 +315,12 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     if cross:
         if top is not None:
             # the sharpest scene edge in the footprint over the cross's contrast
-            edge = top / np.maximum(np.abs(res.gain), 1e-6)
+            edge = np.where(whole, top / np.maximum(np.abs(res.gain), 1e-6), np.nan)
         if scene_tv:
+            sel = tv_select if whole.all() else whole & (True if tv_select is None
+                                                         else np.asarray(tv_select, bool))
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
-                               rules or AcceptRules(), fit_blur, tv_select, groups)
+                               rules or AcceptRules(), fit_blur, sel, groups)
     if keep is not None and res.part_gain is not None and res.part_gain.shape[1] == 4:
         # the half-arm left out has no say: not in the support count, not in the one-bar
         # test (its pixels were read at zero weight; an absent bar's half there looked half
