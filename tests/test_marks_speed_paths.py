@@ -238,3 +238,23 @@ def test_patches_are_the_pixelwise_gather(dtype):
         ref[inside] = (vals * np.float32(1.0 / top))[inside]
         assert np.array_equal(stack[i], ref, equal_nan=True)
     assert np.isnan(stack[2]).any() and np.isfinite(stack[[0, 1, 4]]).all()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_median_rows_is_numpys_median(dtype):
+    """``common.median_rows``: NumPy's row medians bit for bit, odd and even rows, ties,
+    signed zeros and rows with NaN (NumPy's own there)."""
+    from softplot.marks.common import median_rows
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 3, 8, 9, 2760, 2761):
+        a = rng.normal(0, 1, (6, n)).astype(dtype)
+        a[1] = np.round(a[1])  # ties
+        a[2, : n // 2] = 0.0
+        a[2, n // 2 :] = -0.0
+        got, ref = median_rows(a), np.median(a, axis=1)
+        assert got.dtype == ref.dtype and np.array_equal(got, ref)
+    a = rng.normal(0, 1, (3, 50)).astype(dtype)
+    a[1, 7] = np.nan
+    got, ref = median_rows(a), np.median(a, axis=1)
+    assert np.array_equal(got, ref, equal_nan=True) and np.isnan(got[1])

@@ -17,9 +17,26 @@ import numpy as np
 from softplot.errors import SoftplotError
 
 __all__ = ["DetectionError", "as_scan", "parse_grid_part", "format_grid_part",
-           "blank_check", "transform_json", "polarity_name", "polarity_signs", "MM_PER_INCH"]
+           "blank_check", "transform_json", "polarity_name", "polarity_signs", "MM_PER_INCH",
+           "median_rows"]
 
 MM_PER_INCH = 25.4
+
+
+def median_rows(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=1)`` of a 2-D float array, the same values in its dtype, from one
+    partition of the rows (NumPy's takes three: its two middle ranks and the last, for NaN;
+    several times faster on long rows). Rows with NaN: NumPy's own."""
+    a = np.asarray(a)
+    n = a.shape[1]
+    if n == 0 or a.dtype.kind != "f" or not np.isfinite(a).all():
+        return np.median(a, axis=1)
+    h = n // 2
+    p = np.partition(a, h, axis=1)
+    if n % 2:
+        return p[:, h].copy()
+    # the two middle ranks' mean, as NumPy takes it (their sum, halved, in the dtype)
+    return (p[:, :h].max(1) + p[:, h]) / a.dtype.type(2)
 
 
 class DetectionError(SoftplotError):

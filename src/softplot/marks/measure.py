@@ -15,6 +15,7 @@ from softplot.marks import kernels as _kernels
 from softplot.marks import scene_tv
 from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
+from softplot.marks.common import median_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import concurrent, thread_map
@@ -212,7 +213,7 @@ def scene_background(stack: np.ndarray, shape: MarkShape, s: float, sign: int,
     del C
     # the patch's noise: MAD of data minus estimate (every third pixel is plenty)
     nz = np.abs(q - S.reshape(n, h + 2 * pad, w)[:, pad : pad + h]).reshape(n, -1)[:, ::3]
-    nz = np.maximum(1.4826 * np.median(nz, axis=1), 1e-4).astype(np.float32)
+    nz = np.maximum(1.4826 * median_rows(nz), 1e-4).astype(np.float32)
     nzb = np.repeat(nz, h + 2 * pad)[:, None]
     # S += al (SL - S) with al = 1 / (1 + ((SL - S) / (0.75 noise))^2), in place (the working
     # set of a chunk of patches bounds the fine stage's memory)

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from softplot.marks import kernels
+from softplot.marks.common import median_rows
 
 __all__ = ["local_fit", "local_prediction", "outline", "position_affine"]
 
@@ -65,7 +66,7 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     Q = len(d)
     if n_dev is not None:
         n_dev = np.asarray(n_dev, float).reshape(B, -1)
-        spread = 1.4826 * np.median(n_dev, axis=1) + 1e-12  # (B,)
+        spread = 1.4826 * median_rows(n_dev) + 1e-12  # (B,)
         # (np.take: the same gather as ``n_dev[:, j]``, several times faster)
         w = w / (1.0 + (np.take(n_dev, j, axis=1) / (3.0 * spread[:, None, None])) ** 2)
         w = w.reshape(B * Q, k)
