@@ -37,8 +37,7 @@ import numpy as np
 from softplot.marks import kernels
 from softplot.marks.template import MarkShape, aperture
 
-__all__ = ["LSMResult", "lsm", "support_mask", "patch_frame", "PARAMS", "jpeg_blocks",
-           "jpeg_lowpass", "JPEG_BLOCKS", "JPEG_LOWPASS", "JPEG_WIDTH"]
+__all__ = ["LSMResult", "lsm", "support_mask", "patch_frame", "PARAMS"]
 
 #: parameter order of the LSM model
 PARAMS = ("cx", "cy", "a00", "a01", "a10", "a11", "s", "a", "b", "gx", "gy", "sat")
@@ -48,69 +47,6 @@ _NP = len(PARAMS)
 #: so what is left after stopping is below a tenth of the standard deviation (1 % of the
 #: variance)
 CONVERGED = 0.5
-
-
-#: a scan whose :func:`jpeg_blocks` figure exceeds this was stored as a JPEG with visible 8x8
-#: blocks (the sweep's renders: 1.05 for quality 94, 1.2-35 below; 0.98-1.04 without JPEG)
-JPEG_BLOCKS = 1.15
-#: Gaussian sigma (px) of the low-pass that marks' patches of such a scan are fitted on
-#: (:func:`jpeg_lowpass`). JPEG's quantisation error is white noise to no model: it sits at
-#: the bars' edges, in the high frequencies the quantiser coarsens most, and pulls thin, sharp
-#: crosses by tenths of a pixel. The low-pass keeps the frequencies JPEG keeps (its fitted
-#: blur ``s`` is then the scan's and this one's together); on the sweep's JPEG renders it
-#: brings the pooled RMS over the Cramer-Rao bound from 1.44 to 1.32
-JPEG_LOWPASS = 0.7
-#: ... for crosses whose line width (px) is below this: wider bars' two edges stand apart
-#: and lose more to the low-pass than JPEG costs them (the sweep's crosses 2-9 px wide)
-JPEG_WIDTH = 2.0
-
-
-def jpeg_blocks(data: np.ndarray, tiles: int = 8, size: int = 64) -> float:
-    """How plainly an image shows JPEG's 8x8 blocks: the mean absolute grey step across the
-    block boundaries (between pixel columns ``8k + 7`` and ``8k + 8`` of the pixel system,
-    and likewise rows) over the median step at the seven other phases; the smaller of the two
-    directions. Steps count up to 8 grey levels (a mark's or the scene's edges, wherever
-    they fall, would outweigh the blocks). About 1 without blocks, above
-    :data:`JPEG_BLOCKS` for a JPEG copy. 8-bit data only (JPEG stores 8 bits; anything else
-    gives 1); ``data`` (H, W) or (H, W, C), of which ``tiles`` x ``tiles`` windows of
-    ``size`` px (on the block grid, evenly spread) in one channel are read."""
-    a = np.asarray(data)
-    if a.dtype != np.uint8 or a.ndim not in (2, 3) or min(a.shape[:2]) < 32:
-        return 1.0
-    if a.ndim == 3:
-        a = a[..., min(1, a.shape[2] - 1)]
-    h, w = a.shape
-    sy, sx = min(size, h // 8 * 8), min(size, w // 8 * 8)
-    y0 = np.unique(np.linspace(0, h - sy, tiles).astype(int) // 8 * 8)
-    x0 = np.unique(np.linspace(0, w - sx, tiles).astype(int) // 8 * 8)
-    rr = (y0[:, None, None, None] + np.arange(sy)[None, None, :, None])
-    cc = (x0[None, :, None, None] + np.arange(sx)[None, None, None, :])
-    t = a[rr, cc].reshape(-1, sy, sx).astype(np.int16)
-    out = []
-    for d in (np.abs(np.diff(t, axis=2)), np.abs(np.diff(t, axis=1)).transpose(0, 2, 1)):
-        np.minimum(d, 8, out=d)
-        n = d.shape[2] // 8 * 8
-        m = d[:, :, :n].reshape(-1, n // 8, 8).mean(axis=(0, 1))
-        out.append(float(m[7] / max(float(np.median(m[:7])), 1e-6)))
-    return min(out)
-
-
-def jpeg_lowpass(stack: np.ndarray, sigma: float = JPEG_LOWPASS) -> np.ndarray:
-    """Patches (N, h, w), pixel system, float32 grey, NaN outside the scan, Gaussian-filtered
-    with ``sigma`` (px) within each patch (edges replicated; NaN pixels stay NaN and take
-    the patch's median meanwhile)."""
-    from scipy.ndimage import gaussian_filter
-
-    st = np.asarray(stack, np.float32)
-    if st.size == 0:
-        return st
-    bad = ~np.isfinite(st)
-    if bad.any():
-        med = np.nanmedian(np.where(bad, np.nan, st).reshape(len(st), -1), axis=1)
-        st = np.where(bad, np.nan_to_num(med)[:, None, None], st).astype(np.float32)
-    out = gaussian_filter(st, (0.0, sigma, sigma), mode="nearest", truncate=3.0)
-    out[bad] = np.nan
-    return out
 
 
 @dataclass

@@ -6,7 +6,6 @@ All positions are in the pixel system of the full-resolution scan.
 from __future__ import annotations
 
 import warnings
-import weakref
 from dataclasses import dataclass, fields
 
 import cv2
@@ -17,40 +16,13 @@ from softplot.marks import scene_tv
 from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
 from softplot.marks.common import median_rows
-from softplot.marks.lsm import (
-    JPEG_BLOCKS,
-    JPEG_WIDTH,
-    LSMResult,
-    _parts,
-    jpeg_blocks,
-    jpeg_lowpass,
-    lsm,
-    patch_frame,
-    support_mask,
-)
+from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import concurrent, thread_map
 
 __all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma",
            "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
            "peer_gain", "faint"]
-
-
-_BLOCKS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def _as_fitted(scan, stack: np.ndarray, shape: MarkShape) -> np.ndarray:
-    """The :func:`patches` ``stack`` the fine fits see: low-passed
-    (:func:`softplot.marks.lsm.jpeg_lowpass`) for crosses thinner than
-    :data:`softplot.marks.lsm.JPEG_WIDTH` px on a scan that shows JPEG's blocks
-    (:func:`softplot.marks.lsm.jpeg_blocks`, worked out once per scan), so that they model
-    what JPEG keeps; else as stored."""
-    if not stack.size or shape.kind != "cross" or shape.width >= JPEG_WIDTH:
-        return stack
-    on = _BLOCKS.get(scan)
-    if on is None:
-        on = _BLOCKS[scan] = bool(jpeg_blocks(scan.data) > JPEG_BLOCKS)
-    return jpeg_lowpass(stack) if on else stack
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -323,8 +295,6 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
-    # (the joint scene estimate wants the scene's edges as stored: no low-pass for it)
-    raw, stack = stack, (stack if scene_tv else _as_fitted(scan, stack, shape))
     bg, wt, grad = scene_background(stack, shape, s0, sign) if scene else (None, None, None)
     keep = None
     if drop_part is not None and shape.kind == "cross":
@@ -337,9 +307,6 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     # set's other crosses have theirs (one such patch in a chunk took them from all of it)
     whole = np.isfinite(stack).reshape(len(c0), -1).all(1)
     cross = scene and shape.kind == "cross" and bool(whole.any())
-    if cross and edges and stack is not raw:  # the scene's edges as stored (not low-passed)
-        grad = scene_background(raw, shape, s0, sign)[2]
-    del raw
     top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
     del grad  # not held through LSM (the fine stage's peak memory)
     res = first if first is not None else _lsm(
@@ -1052,7 +1019,6 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     grow = float(1.0 / max(sv.min(), 1e-3))
     half = int(np.ceil(shape.extent * grow + 3.0 * s_fit + 3))
     stack, origin = patches(scan, c0, half)
-    stack = _as_fitted(scan, stack, shape)
     bg, wt, _ = scene_background(stack, shape, s_fit, sign)
     u, v = patch_frame(origin, c0, A0, stack.shape)
     passed = np.zeros((n, 2), bool)
