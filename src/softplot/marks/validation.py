@@ -29,6 +29,7 @@ from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
            "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "extrapolation",
+           "prediction_reach", "h_parameter_jacobian",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
@@ -441,12 +442,15 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
     their neighbours predict; along the bar the position is that prediction, with the
     per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
-    predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`. The
+    predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`, times
+    how much farther the prediction reaches there (:func:`prediction_reach`: a corner bar of
+    a small grid is extrapolated by the model fitted to the others). The
     bar's contrast to noise, or its contrast, must be at least half the measured crosses'
     median (the noise under a lone bar is not always the crosses'). Where that standard
     deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_MM` in px over the root of
-    the scan's variance factor, which scales it later) no bar is measured: the point would be
-    the neighbours' guess along the bar, not a measurement. ``cov``:
+    the scan's variance factor, which scales it later) before the reach is counted, no bar is
+    measured: the scan's neighbours predict its crosses too poorly for any bar's point to be
+    more than a guess along it. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
     st = np.array(status)
@@ -461,6 +465,7 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     along = max(float(np.sqrt(np.mean(loo**2))), LONE_ARM_ALONG_MIN_PX)
     if along > along_max:
         return
+    along = along * prediction_reach(film[q], film[meas], Hm, sigma[meas])
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
@@ -471,6 +476,46 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
             status[i], reason[i], arms[i] = "measured", "", 1
+
+
+def h_parameter_jacobian(H, xy) -> np.ndarray:
+    """Derivatives of a projective transform's output (pixel system) at ``xy`` (M, 2) (film
+    mm) with respect to its eight parameters (``H`` scaled to ``H[2, 2] = 1``): (2M, 8),
+    rows x and y of each point in turn."""
+    H = np.asarray(H, float) / H[2, 2]
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    x, y = xy[:, 0], xy[:, 1]
+    w = H[2, 0] * x + H[2, 1] * y + 1.0
+    out = grid.apply_h(H, xy)
+    J = np.zeros((len(xy), 2, 8))
+    for r in (0, 1):
+        J[:, r, 3 * r:3 * r + 3] = np.column_stack([x, y, np.ones_like(x)]) / w[:, None]
+        J[:, r, 6:] = -out[:, r, None] * xy / w[:, None]
+    return J.reshape(-1, 8)
+
+
+def prediction_reach(q_film, film, H, sigma, draws=16) -> np.ndarray:
+    """How much farther the prediction of positions at ``q_film`` (Q, 2) mm reaches than the
+    leave-one-out predictions of the measured marks at ``film`` (M, 2) mm: the square root
+    of the ratio of their variances for unit noise on the marks (``draws`` simulated sets),
+    at least 1 (Q,). The prediction at ``q_film`` is the global model ``H`` (film mm ->
+    pixel system) fitted to the marks again (linearised) plus a local quadratic of their
+    residuals; the leave-one-out ones are :func:`local_prediction` of the residuals from the
+    model fitted to all. On a small grid the model fitted to six crosses and extrapolated to
+    the seventh's corner moves several times as much as inside it."""
+    z = np.random.default_rng(0).standard_normal((draws, len(film), 2))
+    if len(film) >= 5:
+        Jm = h_parameter_jacobian(H, film)
+        Jq = h_parameter_jacobian(H, q_film)
+        dh = np.linalg.lstsq(Jm, z.reshape(draws, -1).T, rcond=None)[0]  # (8, B)
+        rz = z - (Jm @ dh).T.reshape(draws, -1, 2)
+        pq = (Jq @ dh).T.reshape(draws, -1, 2) + local_fit(q_film, film, rz, 16, 2,
+                                                             n_sigma=sigma)
+    else:
+        pq = local_fit(q_film, film, z, 16, 2, n_sigma=sigma)
+    pm = local_prediction(film, z, sigma=sigma)
+    ref = float(np.median(np.mean(pm**2, axis=(0, 2))))
+    return np.sqrt(np.maximum(np.mean(pq**2, axis=(0, 2)) / ref, 1.0))
 
 
 def edge_cut_part(xy, J, ppm, shape, width, height):
