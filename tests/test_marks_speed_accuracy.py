@@ -301,3 +301,43 @@ def test_compiled_fine_stage_is_the_step_by_step_loop(seed, monkeypatch):
         assert np.array_equal(fit.converged, ref.converged)
         # against the true centres (a scene edge beside some crosses: biases of 0.15 px)
         assert np.abs(fit.centre - c).max() < 0.3
+
+
+def test_joint_scene_refit_reuses_the_first_pass_opening(monkeypatch):
+    """``scene="auto"`` on a busy scene: the refit with the joint scene starts from the
+    opening's estimate the first pass computed (``measure.REUSE_OPENING``) instead of
+    computing it again. The same crosses are measured at the same places (to the float
+    rounding of arrays placed elsewhere in memory, 1e-6 px) with the same covariances, the
+    fast path computes the opening under fewer patches, and both are accurate against the
+    truth."""
+    from softplot.io import Scan
+    from softplot.marks import detect
+    from softplot.marks import measure as M
+    from softplot.synthetic import ScanSpec, render_scan
+
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=900, rotation_deg=1.5, scene="busy"),
+                             11)
+    sc = Scan.from_array(img, dpi=900)
+    opened = {"n": 0}
+    real = M.scene_background
+
+    def spy(stack, *a, **k):
+        opened["n"] += len(stack)
+        return real(stack, *a, **k)
+
+    monkeypatch.setattr(M, "scene_background", spy)
+    out, n = {}, {}
+    for reuse in (False, True):
+        monkeypatch.setattr(M, "REUSE_OPENING", reuse)
+        opened["n"] = 0
+        out[reuse] = detect(sc, "rollei-6006")
+        n[reuse] = opened["n"]
+    a, b = out[True], out[False]
+    assert a.scene == b.scene == "joint"
+    assert list(a.status) == list(b.status)
+    ok = np.array([s == "measured" for s in a.status])
+    assert ok.sum() >= 110
+    assert np.abs(a.xy[ok] - b.xy[ok]).max() < 1e-6
+    assert np.abs(a.cov[ok] - b.cov[ok]).max() < 1e-6 * np.abs(b.cov[ok]).max()
+    assert n[True] <= n[False] - 40, n
+    assert _rms([_errors(a, truth)]) < 0.1

@@ -281,13 +281,17 @@ def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndar
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
          scene_tv=0, rules=None, first=None, edges=False, fit_blur=True, tv_select=None,
-         groups=None):
+         groups=None, bg_out=None, scene_bg=None):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
     ``first``: that first fit, when it was made already by a call with the same arguments;
     ``tv_select``: the marks the joint scene refits, default all; ``groups``: independent
-    sets of marks, see :func:`_refit_scene`).
+    sets of marks, see :func:`_refit_scene`; ``bg_out``: a list the opening's scene estimate
+    (pixel system, (M, h, w)) of the marks with a scene edge (``edge`` above
+    :data:`softplot.marks.scene_tv.EDGE_MIN`) is appended to; ``scene_bg``: that estimate of
+    the marks ``tv_select``, with ``first``, from a call with the same arguments: the refit
+    with the joint scene then does not compute it again, and gives the same values).
     Returns ``(LSMResult, edge)``; ``edge``, with ``edges``: :func:`_footprint_gradient` over
     the fitted contrast, else (and for other marks) NaN."""
     sv = np.linalg.svd(A0, compute_uv=False)
@@ -295,7 +299,12 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
     half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
     stack, origin = patches(scan, c0, half)
-    bg, wt, grad = scene_background(stack, shape, s0, sign) if scene else (None, None, None)
+    if scene_bg is not None:  # only the joint scene's start is wanted, and was computed
+        bg = np.zeros(stack.shape, np.float32)
+        bg[np.asarray(tv_select, bool)] = scene_bg
+        wt = grad = None
+    else:
+        bg, wt, grad = scene_background(stack, shape, s0, sign) if scene else (None, None, None)
     keep = None
     if drop_part is not None and shape.kind == "cross":
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
@@ -317,6 +326,8 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         if top is not None:
             # the sharpest scene edge in the footprint over the cross's contrast
             edge = np.where(whole, top / np.maximum(np.abs(res.gain), 1e-6), np.nan)
+            if bg_out is not None and bg is not None:
+                bg_out.append(bg[edge > _scene_tv.EDGE_MIN])
         if scene_tv:
             sel = tv_select if whole.all() else whole & (True if tv_select is None
                                                          else np.asarray(tv_select, bool))
@@ -371,6 +382,11 @@ REFIT_ALL_PASSES = 2
 LONE_BAR_MIN_GAIN = 0.1
 REFIT_SETTLE = 0.25
 
+
+#: the refit with the joint scene of :func:`measure`'s ``auto_tv`` starts from the opening's
+#: estimate its first pass computed (kept for the crosses with a scene edge only); False:
+#: computed again (the same values, :func:`_fit`)
+REUSE_OPENING = True
 
 #: a single chunk of at least twice this many marks is fitted in two halves on two threads
 #: where :func:`softplot.runtime.thread_map` runs concurrently (:func:`_halves`)
@@ -871,9 +887,13 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         want = p_i == 0 and not scene_tv and bool(auto_tv) and busy is not None
 
         def run(k, starts=starts, ie=ie, tv=scene_tv, want=want, s0=s0, fb=fit_blur):
-            return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                        drop_part[k] if multi else drop_part, tv, rules, edges=want,
-                        fit_blur=fb, groups=sets[k] if multi else None)
+            # with ``want``, the opening's estimate under the crosses with a scene edge is
+            # kept for the refit with the joint scene below (not computed twice)
+            held = [] if want and REUSE_OPENING else None
+            res, e = _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
+                          drop_part[k] if multi else drop_part, tv, rules, edges=want,
+                          fit_blur=fb, groups=sets[k] if multi else None, bg_out=held)
+            return res, e, (held[0] if held else None)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
         # acceptance tests then see all marks at once, so the outcome does not depend on how
@@ -896,15 +916,16 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             def rerun(a, starts=starts, ie=ie, tv=scene_tv, s0=s0, fb=fit_blur):
                 # only the crosses with a scene edge in their footprint
                 # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit
-                k, first = a
+                k, first, held = a
                 sel = edge[k] > _scene_tv.EDGE_MIN
                 if not sel.any():
                     return first
                 return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                            drop_part, tv, rules, first, fit_blur=fb, tv_select=sel)[0]
+                            drop_part, tv, rules, first, fit_blur=fb, tv_select=sel,
+                            scene_bg=held)[0]
 
-            res = _concat(thread_map(rerun, list(zip(parts, (o[0] for o in out),
-                                                     strict=True))))
+            res = _concat(thread_map(rerun, [(k, o[0], o[2]) for k, o in zip(parts, out,
+                                                                             strict=True)]))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
                                 max_shift, sigma_ref, gain_ref)
         if contrast:
