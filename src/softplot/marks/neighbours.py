@@ -10,13 +10,16 @@ polynomial through its neighbours (:func:`local_fit`). The measurement stage
 
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from softplot.marks import kernels
 from softplot.marks.common import median_rows
 
-__all__ = ["local_fit", "local_prediction", "outline", "position_affine"]
+__all__ = ["local_fit", "local_prediction", "outline", "position_affine", "remembered"]
 
 
 def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None,
@@ -154,7 +157,55 @@ def _smallest_eig_above(S, tol):
     return ok
 
 
+_MEMO = threading.local()  # the calls of local_prediction within ``remembered`` (this thread)
+
+
+@contextmanager
+def remembered():
+    """Within this context (in this thread) :func:`local_prediction` called again with the
+    inputs of an earlier call returns a copy of that call's result: the same values,
+    computed once (the validation of a scan asks for some predictions several times)."""
+    outer = getattr(_MEMO, "calls", None)
+    if outer is None:
+        _MEMO.calls = []
+    try:
+        yield
+    finally:
+        if outer is None:
+            _MEMO.calls = None
+
+
+def _same_inputs(a, b) -> bool:
+    """Whether two calls' inputs ``(film, r, k_max, sigma)`` hold the same values."""
+    for x, y in zip(a, b, strict=True):
+        if x is None or y is None:
+            if x is not y:
+                return False
+        elif np.isscalar(x):
+            if x != y:
+                return False
+        elif x.shape != y.shape or not np.array_equal(x, y, equal_nan=True):
+            return False
+    return True
+
+
 def local_prediction(film, r, k_max=16, sigma=None):
+    """Leave-one-out prediction of each residual from a local polynomial fit to its neighbours
+    (:func:`_local_prediction`; within :func:`remembered`, once per distinct inputs)."""
+    calls = getattr(_MEMO, "calls", None)
+    if calls is None:
+        return _local_prediction(film, r, k_max, sigma)
+    key = (np.array(film, float), np.array(r, float), int(k_max),
+           None if sigma is None else np.array(sigma, float))
+    for k, out in calls:
+        if _same_inputs(k, key):
+            return out.copy()
+    out = _local_prediction(film, r, k_max, sigma)
+    calls.append((key, out.copy()))
+    return out
+
+
+def _local_prediction(film, r, k_max=16, sigma=None):
     """Leave-one-out prediction of each residual from a local polynomial fit to its neighbours.
 
     ``film`` (M, 2) mm, ``r`` (M, 2) px. A smooth film deformation is locally quadratic to a

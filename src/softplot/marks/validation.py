@@ -23,7 +23,13 @@ from scipy.optimize import nnls
 from softplot.marks import grid
 from softplot.marks.measure import AcceptRules, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
-from softplot.marks.neighbours import local_fit, local_prediction, outline, position_affine
+from softplot.marks.neighbours import (
+    local_fit,
+    local_prediction,
+    outline,
+    position_affine,
+    remembered,
+)
 from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
@@ -112,7 +118,14 @@ class Validation:
 def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
     """Outlier test, rescue of the rejected and refused crosses, lone bars, the scan's
     variance factor; updates ``m``'s per-cross arrays (positions, covariances, status,
-    reason) in place and scales ``m.cov`` by the variance factor."""
+    reason) in place and scales ``m.cov`` by the variance factor. (The neighbours'
+    predictions it asks for more than once are computed once: :func:`remembered`.)"""
+    with remembered():
+        return _validate(scan, pr, m, rules)
+
+
+def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
+    """:func:`validate`."""
     film, ppm, shape, fine = pr.film, pr.px_per_mm, m.shape, m.fine
     xy, cov, cov_w, status, reason = m.xy, m.cov, m.cov_white, m.status, m.reason
     N, idx = len(film), m.fitted
