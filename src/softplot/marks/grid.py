@@ -395,6 +395,7 @@ def fit_grid(
     scale_tol: float | None = None,
     part: tuple[int, int, int, int] | None = None,
     seeable=None,
+    by_count: bool = False,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
 
@@ -441,6 +442,9 @@ def fit_grid(
         scan like the crosses ``found`` (n, 2) ((K,) bool; false over a flat dark region or
         the border): crosses missed there do
         not make another naming less likely (:attr:`GridFit.ambiguous`).
+    by_count : bool
+        The lattice most peaks agree with, not the one of the highest sum of their scores
+        (:func:`find_lattice`).
 
     Returns
     -------
@@ -449,7 +453,8 @@ def fit_grid(
     """
     xy = np.asarray(xy, float)
     score = np.asarray(score, float)
-    lat = find_lattice(xy, score, reseau, px_per_mm, rotate_deg, max_rotation_deg, scale_tol)
+    lat = find_lattice(xy, score, reseau, px_per_mm, rotate_deg, max_rotation_deg, scale_tol,
+                       by_count)
     if lat is None:
         return None
     ident = identify(lat, score, reseau, image_size, margin_px, frame_evidence, format_mm,
@@ -478,7 +483,7 @@ def _best_per_node(idx, sel, key_val):
 
 
 def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
-                 max_rotation_deg=20.0, scale_tol=None) -> Lattice | None:
+                 max_rotation_deg=20.0, scale_tol=None, by_count=False) -> Lattice | None:
     """The affine lattice of the reseau's pitch through the candidate peaks ``xy`` (M, 2)
     (pixel system) with scores ``score`` (M,).
 
@@ -487,7 +492,9 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
     node, a robust lattice through triplets of nodes, per node the peak closest to it) and
     the one most peaks agree with (within :data:`AGREE_MM` of a node; among equals the one
     nearer ``rotate_deg``, then the one they lie closer to) is kept. Arguments as
-    :func:`fit_grid`'s; None when fewer than 3 peaks lie on any lattice."""
+    :func:`fit_grid`'s; None when fewer than 3 peaks lie on any lattice. ``by_count``: the
+    peaks agree with a lattice by their number, not by the sum of their scores (a reseau of
+    weak crosses that a busy scene's stronger peaks outscore)."""
     M = len(xy)
     if M < 4:
         return None
@@ -505,7 +512,8 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
                                              square):
         if best_key is not None and 1.5 * n_cell + 3 < best_key[0]:
             continue  # too few peaks in its cell to gather as many as the best lattice
-        got = _lattice_at(xy, score, theta, p0, lx, ly, min(px, py), scale_tol)
+        got = _lattice_at(xy, np.ones_like(score) if by_count else score, theta, p0, lx, ly,
+                          min(px, py), scale_tol)
         if got is None:
             continue
         p0, Bc, idx, cand, (n_agree, med) = got

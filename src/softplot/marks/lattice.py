@@ -236,7 +236,8 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     A sign whose :attr:`Candidates.bound` cannot beat a fit already made (of at least
     :data:`MIN_FIT` crosses) is not fitted; a fit of fewer crosses loses to one of as many.
     When no fit can be a reseau (:func:`reseau_sized`), each is fitted again with the
-    crosses looked for at its nodes (:func:`_densified`).
+    crosses looked for at its nodes (:func:`_densified`), and then, when still none can, to
+    the lattice most peaks agree with in number (:func:`_by_count`).
     """
     res = camera.reseau
     f, px_per_mm = ov.factor, ov.px_per_mm
@@ -252,7 +253,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
         if done and bound < max(done):
             continue
 
-        def fit(q):
+        def fit(q, by_count=False):
             # a cross nearer the scan's edge than the correlation map reaches (its offset)
             # has no peak: it is never a missed cross
             return grid.fit_grid(coarse.ov_to_full(q.xy, f), q.score, res,
@@ -261,7 +262,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
                                  margin_px=max(0.5 * cands.template.length, cands.half) * f,
                                  frame_evidence=frame_evidence(ov.image, f, px_per_mm, pmin),
                                  format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
-                                 seeable=show)
+                                 seeable=show, by_count=by_count)
 
         fits[sg] = (fit(pk), pk, fit)
     dense = set()
@@ -273,6 +274,12 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
                 if g2 is not g:
                     fits[sg] = (g2, pk2, fit)
                     dense.add(sg)
+    if not any(g is not None and reseau_sized(g.node, res) for g, _, _ in fits.values()):
+        # still none: the lattice most peaks agree with, by number (weak crosses)
+        for sg, v in _by_count(fits, res).items():
+            if v is not fits[sg]:
+                fits[sg] = v
+                dense.discard(sg)
     best = None
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
         g, pk, _ = fits.get(sg, (None, None, None))
@@ -352,6 +359,20 @@ def _densified(g, pk, sign, cands: Candidates, ov: ReseauOverview, res, fit):
             break
         g, pk = g2, pk2
     return g, pk
+
+
+def _by_count(fits: dict, res) -> dict:
+    """``fits`` (sign -> (fit, peaks, fit function)), none of which can be a reseau
+    (:func:`reseau_sized`), with each sign's lattice fitted again to the peaks that most
+    agree with one in number (not in the sum of their scores) where that one can: a reseau
+    of weak crosses (thin, faint or blurred arms the template matches poorly) over a busy
+    scene, whose stronger peaks outscore it on a lattice of a few nodes."""
+    out = dict(fits)
+    for sg, (_, pk, fit) in fits.items():
+        g2 = fit(pk, by_count=True)
+        if g2 is not None and reseau_sized(g2.node, res):
+            out[sg] = (g2, pk, fit)
+    return out
 
 
 def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: float,
