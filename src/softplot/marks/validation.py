@@ -222,7 +222,7 @@ def outlier_threshold(spread, floor, sigma, expected=None):
     return np.minimum(thr, np.maximum(floor, OUTLIER_K * expected))
 
 
-def departure_model(dev, sigma, edge, iterations=6):
+def departure_model(dev, sigma, edge, iterations=6, reach=None):
     """Coefficients of the expected squared departure of a mark from its neighbours'
     prediction, ``a sigma^2 + b``: ``a`` scales the mark's own variance (``sigma`` px from LSM,
     which a busy scene makes optimistic), ``b`` (px^2) is what every mark shares (the
@@ -235,36 +235,48 @@ def departure_model(dev, sigma, edge, iterations=6):
     variance of a squared Gaussian departure grows with its mean); departures beyond 3 times
     the model's size are left out and the fit repeated. On a clean scan ``b`` dominates and
     the test is the spread's; over a busy scene it holds a precise cross to its own sigma.
+    With ``reach`` (M,), how far each mark's prediction extrapolates beyond its group's
+    typical (:func:`extrapolation`, 1 for most), a third term ``c (reach^2 - 1)`` is fitted
+    with them: at a corner a deformation the local polynomial does not follow moves the
+    prediction further. Returns (2, 3) then (columns ``a``, ``b``, ``c``).
     Returns (2, 2): rows outline, inside; columns ``a``, ``b``
     (:func:`expected_departure` evaluates it).
     """
     d2 = np.asarray(dev, float) ** 2
     s2 = np.nan_to_num(np.asarray(sigma, float), nan=1.0) ** 2
+    x2 = None if reach is None else np.asarray(reach, float) ** 2 - 1.0
     edge = np.asarray(edge, bool)
-    def fit(d2, s2):
-        a, b = 1.0, float(np.median(d2)) + 1e-12
+    def fit(d2, s2, x2):
+        a, b, c = 1.0, float(np.median(d2)) + 1e-12, 0.0
         for _ in range(iterations):
-            mod = a * s2 + b
+            mod = a * s2 + b + (0.0 if x2 is None else c * x2)
             keep = d2 <= 9.0 * mod
             if keep.sum() < 2:
                 break
             wt = 1.0 / np.maximum(mod[keep], 1e-24)
-            M = np.stack([s2[keep], np.ones(int(keep.sum()))], 1) * wt[:, None]
-            (a, b), _ = nnls(M, d2[keep] * wt)
-            b = max(float(b), 1e-12)
-        return a, b
+            cols = [s2[keep], np.ones(int(keep.sum()))] + ([] if x2 is None else [x2[keep]])
+            sol, _ = nnls(np.stack(cols, 1) * wt[:, None], d2[keep] * wt)
+            a, b = float(sol[0]), max(float(sol[1]), 1e-12)
+            c = float(sol[2]) if x2 is not None else 0.0
+        return (a, b) if x2 is None else (a, b, c)
 
     if min(edge.sum(), (~edge).sum()) >= 8:
-        return np.array([fit(d2[edge], s2[edge]), fit(d2[~edge], s2[~edge])])
-    return np.tile(fit(d2, s2), (2, 1))  # too few in a group: one model for both
+        return np.array([fit(d2[g], s2[g], None if x2 is None else x2[g])
+                         for g in (edge, ~edge)])
+    return np.tile(fit(d2, s2, x2), (2, 1))  # too few in a group: one model for both
 
 
-def expected_departure(coef, sigma, edge):
+def expected_departure(coef, sigma, edge, reach=None):
     """Expected departure (px) of marks with precision ``sigma`` (px) on the outline
-    (``edge`` True) or inside the grid, from :func:`departure_model`'s ``coef``."""
+    (``edge`` True) or inside the grid, from :func:`departure_model`'s ``coef``; with
+    ``reach`` (how far each mark's prediction extrapolates) its prediction error grown
+    with it."""
     c = coef[np.where(np.asarray(edge, bool), 0, 1)]
     sg = np.nan_to_num(np.asarray(sigma, float), nan=1.0)
-    return np.sqrt(c[..., 0] * sg**2 + c[..., 1])
+    var = c[..., 0] * sg**2 + c[..., 1]
+    if reach is not None and c.shape[-1] > 2:
+        var = var + c[..., 2] * (np.asarray(reach, float) ** 2 - 1.0)
+    return np.sqrt(var)
 
 
 def robust_spread(dev, edge):
@@ -314,13 +326,14 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         # deformation makes worse than the interpolation inside: each group its own spread
         spread = robust_spread(dev, edge[idx])
         sg = np.nan_to_num(sigma[idx], nan=1.0)
-        if coef is None:  # from all measured marks, before any is rejected
-            coef = departure_model(dev, sg, edge[idx])
-        if coef is None or reach is None:  # the marks measured when the test starts
+        if reach is None:  # the marks measured when the test starts
             reach = np.ones(len(film))
             reach[idx] = extrapolation(film[idx], sigma[idx], edge[idx])
+        if coef is None:  # from all measured marks, before any is rejected
+            coef = departure_model(dev, sg, edge[idx], reach=reach[idx])
         fl = np.broadcast_to(floor_px, (len(film),))[idx] * reach[idx]
-        thr = outlier_threshold(spread, fl, sg, expected_departure(coef, sg, edge[idx]))
+        thr = outlier_threshold(spread, fl, sg,
+                                expected_departure(coef, sg, edge[idx], reach[idx]))
         bad = dev > thr
         if not bad.any():
             break
