@@ -14,7 +14,7 @@ one (:func:`measure_marks`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -135,6 +135,8 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
                           sign, rules, max_shift, ppm, scene_tv=tv, A0=A0[idx])
     other_sizes(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
                 max_shift, scene_tv=tv)
+    blob_size(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,
+              max_shift, scene_tv=tv)
     few_faint(fine, rules or AcceptRules())
     N = len(pr.film)
     xy = np.full((N, 2), np.nan)
@@ -352,15 +354,74 @@ def other_sizes(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_sh
                      sigma_ref=peer_sigma(fine), gain_ref=peer_gain(fine))
         for j, i in enumerate(grp):
             if f2.ok[j]:
-                fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]
-                fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
-                    f2.score[j], f2.cnr[j], True, "")
-                if fine.s is not None and f2.s is not None:
-                    fine.s[i] = f2.s[j]
-                for extra in ("cov_white", "arms", "gain"):
-                    a, b = getattr(fine, extra, None), getattr(f2, extra, None)
-                    if a is not None and b is not None:
-                        a[i] = b[j]
+                _take(fine, i, f2, j)
+
+
+def _take(fine: Fine, i: int, f2: Fine, j: int) -> None:
+    """Cross ``i`` of ``fine`` accepted as fit ``j`` of ``f2`` (in place)."""
+    fine.xy[i], fine.cov[i], fine.A[i] = f2.xy[j], f2.cov[j], f2.A[j]
+    fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = f2.score[j], f2.cnr[j], True, ""
+    if fine.s is not None and f2.s is not None:
+        fine.s[i] = f2.s[j]
+    for extra in ("cov_white", "arms", "gain"):
+        a, b = getattr(fine, extra, None), getattr(f2, extra, None)
+        if a is not None and b is not None:
+            a[i] = b[j]
+
+
+#: at least this many crosses (and more than are accepted) refused as "wrong size" at one
+#: common size (:func:`blob_size`) are crosses whose size the scan does not resolve
+BLOB_MIN = 4
+
+
+def blob_size(sc, shape, c0, A0, pred, fine, s0, init_err, sign, rules, max_shift,
+              scene_tv=0) -> None:
+    """Measure crosses whose fits shrink the template whatever size it starts from.
+
+    Crosses of arms a few pixels long under blur and JPEG blocks (one block across) show
+    as blobs whose size the fitted affine does not settle: it shrinks the template, and
+    shrinks it again when :func:`other_sizes` starts from the shrunk size, so no template
+    size passes the size test. When at least :data:`BLOB_MIN` crosses, and more than are
+    accepted, are refused as "wrong size" with scales ``k`` (fitted over predicted ``A0``,
+    as :func:`other_sizes`) that agree with their median ``km`` within half the size
+    tolerance (robust spread), they are fitted again from ``c0`` (pixel system) with the
+    arm scaled by ``km`` and the size tolerance widened by ``|1/km - 1|``; a fit is accepted
+    when its scale lies within the size tolerance of the median scale of those accepted
+    (the crosses' common size; a scene feature fitted at a node takes its own).
+    Modifies ``fine`` in place."""
+    if fine.A is None:
+        return
+    rules = rules or AcceptRules()
+    bad = np.array([not o and r == "wrong size" for o, r in zip(fine.ok, fine.reason,
+                                                                   strict=True)])
+    bad &= np.isfinite(fine.A).all((1, 2))
+    if bad.sum() < max(BLOB_MIN, fine.ok.sum()):
+        return
+    idx = np.where(bad)[0]
+    k = _scale(A0[idx], fine.A[idx])
+    km = float(np.median(k))
+    if 1.4826 * float(np.median(np.abs(k - km))) > 0.5 * rules.scale_tol * km:
+        return  # no common size: each fitted to something of its own
+    wide = replace(rules, scale_tol=abs(1.0 / km - 1.0) + rules.scale_tol)
+    blob = MarkShape("cross", length=shape.length * km, width=shape.width)
+    f2 = measure(sc, blob, c0[idx], A0[idx], s0, init_err, sign, wide, anchor=pred[idx],
+                 max_shift=max_shift, scene_tv=scene_tv, sigma_ref=peer_sigma(fine),
+                 gain_ref=peer_gain(fine))
+    if f2.A is None:
+        return
+    k2 = _scale(A0[idx], f2.A)
+    k2m = float(np.median(k2[f2.ok])) if f2.ok.any() else np.nan
+    agree = np.abs(k2 / k2m - 1.0) <= rules.scale_tol
+    for j, i in enumerate(idx):
+        if f2.ok[j] and agree[j]:
+            _take(fine, i, f2, j)
+
+
+def _scale(A0: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """The scale ``k`` of marks fitted with the affines ``A`` (K, 2, 2) over their predicted
+    ``A0`` (K, 2, 2): the square root of the determinants' ratio (NaN where not fitted)."""
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.abs(np.linalg.det(A0)) / np.maximum(np.abs(np.linalg.det(A)), 1e-12))
 
 
 def neighbours_place(film: np.ndarray, xy: np.ndarray) -> np.ndarray:
