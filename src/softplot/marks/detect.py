@@ -72,7 +72,13 @@ from softplot.marks.prediction import predict
 from softplot.marks.result import Detection
 from softplot.marks.scene import SCENE_MODELS
 from softplot.marks.template import cross_shape
-from softplot.marks.validation import MAX_GRID_RMS_MM, Validation, validate
+from softplot.marks.validation import (
+    MAX_GRID_RMS_MM,
+    SIMILAR_TOL_MM,
+    Validation,
+    similar_four,
+    validate,
+)
 
 __all__ = ["detect", "as_scan", "DetectionError", "parse_grid_part", "format_grid_part"]
 
@@ -213,9 +219,15 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
     inside, on_img = pr.inside(shape, sc.width, sc.height)
     timings["predict"] = time.perf_counter() - t0
     m = measure_crosses(sc, shape, pr, inside, on_img, rules, scene)
+    few_mm = FEW_GRID_RMS_MM
+    if min_measured == MIN_DENSE:
+        # four crosses of a grown lattice are tested against the certificate's grid instead
+        # (its similarity: the lattice, shaped by a scene feature among them, is not a test)
+        min_measured = similar_four(pr.film, m.xy, m.status, m.reason, pr.H, ppm) or MIN_DENSE
+        few_mm = SIMILAR_TOL_MM if min_measured < MIN_DENSE else few_mm
     timings["lsm"] = time.perf_counter() - t0
     v = validate(sc, pr, m, rules)
-    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured)
+    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured, few_mm)
     timings["total"] = time.perf_counter() - t0
     return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
                              warnings, timings, ambiguous)
@@ -273,9 +285,10 @@ def _lattice(sc, ov, cam, polarity, rotate_pix, blur_px, part, name, dpi) -> Lat
 
 
 def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous,
-           min_measured=MIN_MEASURED) -> list[str]:
+           min_measured=MIN_MEASURED, few_mm=FEW_GRID_RMS_MM) -> list[str]:
     """Refuse what is not a reseau (fewer than ``min_measured`` crosses measured, or not on
-    a grid); the warnings of one that is."""
+    a grid: fewer than 4 within ``few_mm`` of the lattice's model); the warnings of one that
+    is."""
     res = cam.reseau
     N, n_in = res.count, len(m.fitted)
     n_meas = sum(s == "measured" for s in m.status)
@@ -288,7 +301,7 @@ def _judge(cam, name, sign, ppm, m: Measurement, v: Validation, ambiguous,
             f"{name}: no reseau found: expected a {res.rows}x{res.cols} grid of "
             f"{polarity_name(sign)} crosses at {res.pitch_x}x{res.pitch_y} mm, measured only "
             f"{n_meas} of the {n_in} inside the scan")
-    lim_mm = MAX_GRID_RMS_MM if n_meas >= 4 else FEW_GRID_RMS_MM
+    lim_mm = MAX_GRID_RMS_MM if n_meas >= 4 else few_mm
     if v.rms > lim_mm * ppm:
         # measured, but not on a grid: fits to scene content (e.g. the wrong polarity over a
         # busy scene), not a reseau deformed by at most a tenth of a millimetre; fewer than

@@ -35,7 +35,7 @@ from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
            "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "extrapolation",
-           "prediction_reach", "h_parameter_jacobian",
+           "prediction_reach", "h_parameter_jacobian", "similar_four", "SIMILAR_TOL_MM",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
@@ -502,6 +502,53 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
             status[i], reason[i], arms[i] = "measured", "", 1
+
+
+#: film mm: four crosses measured on a grown lattice lie within this of the certificate's
+#: grid under a similarity (a film scanner's anisotropy, 0.3 %, and a film's shrinkage over
+#: a 6 x 4.5 frame's half-diagonal, and its deformation, stay well inside it)
+SIMILAR_TOL_MM = 0.15
+
+
+def similar_four(film, xy, status, reason, H, ppm) -> int:
+    """Four measured crosses of a lattice grown from too few candidates, held to the
+    certificate's grid under a similarity (rotation, one scale, shift; the handedness of the
+    film mm -> pixel model ``H``): a projective model fits four crosses exactly, a similarity
+    leaves four redundant coordinates. Each cross is predicted from the other three; when
+    exactly one lies more than :data:`SIMILAR_TOL_MM` off that prediction and the other
+    three within it of theirs from the rest, it is rejected (a scene feature measured at a
+    node) and 3 is returned; when all four lie within it, 4; else 0 (no test passed).
+    ``film`` (N, 2) mm, ``xy`` (N, 2) pixel system; modifies ``status``, ``reason``."""
+    idx = np.where(np.array(status) == "measured")[0]
+    if idx.size != 4:
+        return 0
+    flip = -1.0 if np.linalg.det(np.asarray(H, float)[:2, :2]) < 0 else 1.0
+    u = np.column_stack([film[idx, 0], flip * film[idx, 1]])
+
+    def off(fit, test):
+        A = np.zeros((2 * len(fit), 4))
+        A[0::2] = np.column_stack([u[fit, 0], -u[fit, 1], np.ones(len(fit)), np.zeros(len(fit))])
+        A[1::2] = np.column_stack([u[fit, 1], u[fit, 0], np.zeros(len(fit)), np.ones(len(fit))])
+        p = np.linalg.lstsq(A, xy[idx[fit]].ravel(), rcond=None)[0]
+        a, b, tx, ty = p
+        pred = np.column_stack([a * u[test, 0] - b * u[test, 1] + tx,
+                                b * u[test, 0] + a * u[test, 1] + ty])
+        return np.hypot(*(pred - xy[idx[test]]).T) / ppm
+
+    tol = SIMILAR_TOL_MM
+    loo = np.array([off(np.delete(np.arange(4), k), [k])[0] for k in range(4)])
+    if (loo <= tol).all():
+        return 4
+    bad = np.where(loo > tol)[0]
+    for k in bad:
+        rest = np.delete(np.arange(4), k)
+        inner = np.array([off(np.delete(rest, j), [rest[j]])[0] for j in range(3)])
+        if (inner <= tol).all() and all((off(np.delete(rest, j), [k])[0] > tol)
+                                        for j in range(3)):
+            status[idx[k]] = "rejected"
+            reason[idx[k]] = "off the grid the other crosses and the certificate give"
+            return 3
+    return 0
 
 
 def h_parameter_jacobian(H, xy) -> np.ndarray:
