@@ -49,6 +49,6 @@ def test_sweep_render_177_gives_its_real_crosses():
 
     sc, det = run_case(make_case(177))
     assert sc.result and not sc.wrong and not sc.claimed and not sc.gross, sc.error
-    measured = [n for n, s in zip(det.name, det.status) if s == "measured"]
+    measured = [n for n, s in zip(det.name, det.status, strict=True) if s == "measured"]
     assert measured == ["R0C0", "R0C1", "R0C2"], measured
     assert det.status[det.name.index("R2C0")] == "rejected"
