@@ -139,8 +139,12 @@ def estimate_spacing(xy: np.ndarray) -> float | None:
     """Most frequent nearest-neighbour distance (px) among points: the lattice pitch."""
     if len(xy) < 4:
         return None
-    d, _ = cKDTree(xy).query(xy, k=2)
-    nn = np.sort(d[:, 1])
+    # a peak found twice at one place (within 2 px) is not its own neighbour
+    d, _ = cKDTree(xy).query(xy, k=min(4, len(xy)))
+    d = np.where(d[:, 1:] > 2.0, d[:, 1:], np.inf).min(axis=1)
+    nn = np.sort(d[np.isfinite(d)])
+    if len(nn) < 3:
+        return None
     lo = np.searchsorted(nn, nn * 0.95)
     hi = np.searchsorted(nn, nn * 1.05, side="right")
     i = int(np.argmax(hi - lo))
@@ -466,10 +470,16 @@ def fit_grid(
 
 def _scale_ok(Bm, lx, ly, scale_tol) -> bool:
     """The lattice basis ``Bm`` (2, 2) keeps the certificate's spacing ``lx`` x ``ly`` px
-    within ``scale_tol``: a lattice at another spacing is noise, never the reseau."""
+    within ``scale_tol``: a lattice at another spacing is noise, never the reseau. A basis
+    whose two steps are less than 30 degrees apart (peaks fitted along one line only) is never
+    a reseau's, whatever ``scale_tol``."""
+    n = np.hypot(Bm[0], Bm[1])
+    if not (np.all(np.isfinite(Bm)) and n.min() > 0
+            and abs(Bm[0, 0] * Bm[1, 1] - Bm[0, 1] * Bm[1, 0]) > 0.5 * n[0] * n[1]):
+        return False
     if scale_tol is None:
         return True
-    n = np.hypot(Bm[0], Bm[1]) / np.array([lx, ly])
+    n = n / np.array([lx, ly])
     return bool(np.all(np.abs(n - 1.0) <= scale_tol))
 
 

@@ -22,6 +22,7 @@ from softplot.marks.candidates import (
     arm_scored,
     crosses_in,
     peaks_kept,
+    reseau_candidates,
     search_map,
 )
 from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs
@@ -413,6 +414,13 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
     return lat
 
 
+#: the scales tried from the scan's size (x the scale at which the film format fills the scan):
+#: a scan shows the format and a margin of up to about a tenth of it, in steps small enough
+#: that one is within 2 % of the truth (a lattice started 5 % off drifts by a fifth of a pitch
+#: over four pitches)
+SIZE_SCALES = np.linspace(1.0, 0.8, 8)
+
+
 def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> float:
     """The scan's resolution (dpi) from a lattice of its crosses fitted with a free scale.
 
@@ -425,30 +433,31 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
     ppm = guess / MM_PER_INCH
     ov = reseau_overview(scan, res.line_width_mm * ppm, ppm, name)
     f = ov.factor
-    # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi
-    shape_ov = cross_shape(camera, ppm / f)
-    R, h = coarse.ncc_map(ov.image, shape_ov, 0.7, arm_half=min(0.5 * shape_ov.length, 6.0))
-    pk = coarse.find_peaks(R, h, min_dist=max(2.0, 0.3 * min(res.pitch_x, res.pitch_y)
-                                              * ppm / f),
-                           threshold=0.25, max_peaks=3 * res.count + 100)
+    # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi; the
+    # candidates are those of the lattice stage at the guessed scale (NCC peaks scored by
+    # their arms: scene texture correlates as well as crosses do, but shows no arms)
+    cands = reseau_candidates(scan, ov, camera, polarity, 1.0)
     best_g = None
     pmin = min(res.pitch_x, res.pitch_y)
-    for sg in polarity_signs(polarity):
-        q = pk.select(pk.sign == sg)
+    need = max(4, 0.2 * res.count)
+    for q in cands.peaks.values():
         xy = coarse.ov_to_full(q.xy, f)
         # candidate scales: the size-based guess (the scan may show more than the format)
         # and the most frequent neighbour spacing of the strongest peaks (or its double,
         # when peaks also sit half-way between crosses)
-        cands = [ppm, 0.9 * ppm, 0.8 * ppm]
+        cands = list(ppm * SIZE_SCALES)
         sp = grid.estimate_spacing(xy[np.argsort(-q.score)[: max(int(1.5 * res.count), 8)]])
         if sp is not None:
             cands += [sp / pmin, 2.0 * sp / pmin]
         for k in cands:
             g0 = grid.fit_grid(xy, q.score, res, (scan.width, scan.height), px_per_mm=k,
                                rotate_deg=rotate_deg)
-            if g0 is not None and (best_g is None or g0.score > best_g.score):
+            # a lattice of too few nodes never wins over one of enough (a few strong scene
+            # peaks at another scale outscore a small grid's crosses)
+            if g0 is not None and (best_g is None or (len(g0.node) >= need, g0.score)
+                                   > (len(best_g.node) >= need, best_g.score)):
                 best_g = g0
-    if best_g is None or len(best_g.node) < max(4, 0.2 * res.count):
+    if best_g is None or len(best_g.node) < need:
         raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
                              f"found (expected {res.rows}x{res.cols} crosses at "
                              f"{res.pitch_x} mm); give --dpi")
