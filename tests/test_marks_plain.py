@@ -14,8 +14,9 @@ from softplot.marks import grid
 from softplot.synthetic.plain import _bars_cover, make_plain, run_plain, summarise
 
 #: a sample of the independent scans: every camera, both polarities, RGB, 16 bit, JPEG,
-#: crops, dark rows, a larger centre cross, unknown dpi (seeds divisible by 3)
-SAMPLE = (1, 2, 3, 5, 9, 12, 13, 15, 21, 22, 27, 29, 34, 37, 43, 47, 58, 65)
+#: crops, dark rows, a larger centre cross, a 23 x 47 aerial reseau at 120 dpi, unknown dpi
+#: (seeds divisible by 3)
+SAMPLE = (1, 2, 3, 5, 9, 12, 13, 15, 21, 22, 27, 29, 34, 37, 43, 47, 57, 58, 65)
 
 
 def _overlap(i, lo, hi):
