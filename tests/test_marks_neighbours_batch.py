@@ -130,3 +130,45 @@ def test_compiled_local_fit_is_the_numpy_fit(monkeypatch):
     # an exact cubic is reproduced inside the grid (to the normal equations' ridge of 1e-9)
     inner = ~neighbours.outline(full)
     assert np.max(np.abs(got[-1] - truth)[inner]) < 1e-6
+
+
+def _prediction_all_rows(film, r, k_max=16, sigma=None):
+    """The leave-one-out prediction with the second pass's quadratic fitted at every mark and
+    then replaced by the cubic inside the grid (what ``_local_prediction`` computed before it
+    fitted that quadratic on the outline only)."""
+    pred = local_fit(film, film, r, k_max, 2, n_sigma=sigma)
+    dev = np.hypot((r - pred)[..., 0], (r - pred)[..., 1])
+    out = local_fit(film, film, r, k_max, 2, n_sigma=sigma, n_dev=dev)
+    inner = ~neighbours.outline(film)
+    if inner.any():
+        out[..., inner, :] = local_fit(film[inner], film, r, 24, 3, n_sigma=sigma, n_dev=dev)
+    return out
+
+
+def test_prediction_fits_the_outline_quadratic_only_where_it_is_kept(monkeypatch):
+    """The second pass's quadratic fitted at the outline's marks only gives, bit for bit, the
+    figures of that pass fitted at every mark (the unit of distance from all of them; each
+    fit its own): a full and a gappy grid, three rows (every mark on the outline), batches
+    with an outlier in one set, compiled and NumPy fits."""
+    from softplot.marks import kernels
+
+    full, rng = _grid(seed=9)
+    g = np.stack(np.meshgrid(np.arange(11.0), np.arange(11.0)), -1).reshape(-1, 2) * 5.0
+    rows3, _ = _grid(seed=5, rows=3)
+    for film in (g, full, rows3):
+        sig = rng.uniform(0.01, 0.05, len(film))
+        R = rng.normal(0, 0.05, (5,) + film.shape)
+        R[1, 3] += 1.0
+        # the outline's quadratic on its own marks' spacing would differ (a jittered grid):
+        # the unit is all marks'
+        edge = neighbours.outline(film)
+        if film is full:
+            part = local_fit(film, film, R[1], 16, 2, n_sigma=sig, only=edge)
+            alone = local_fit(film[edge], film, R[1], 16, 2, n_sigma=sig)
+            assert part.shape == alone.shape and np.max(np.abs(part - alone)) > 1e-12
+        for jit in ((True, False) if kernels.ready() else (False,)):
+            monkeypatch.setattr(kernels, "AVAILABLE", jit)
+            for r in (R, R[1]):
+                got = neighbours._local_prediction(film, r, sigma=sig)
+                ref = _prediction_all_rows(film, r, sigma=sig)
+                assert got.shape == ref.shape and np.array_equal(got, ref)

@@ -23,7 +23,7 @@ __all__ = ["local_fit", "local_prediction", "outline", "position_affine", "remem
 
 
 def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None,
-               gradient=False):
+               gradient=False, only=None):
     """Values at query points from a weighted local polynomial through their neighbours.
 
     For each query point (``q_film`` (Q, 2) mm) a polynomial in film mm (plane for
@@ -41,6 +41,10 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     A batch of value sets: ``n_val`` (B, M, C) with ``n_dev`` (B, M) or None fits each set
     as its own call would, in one pass (the neighbours are found once), and returns
     (B, Q, C) (not with ``gradient``).
+
+    ``only`` (Q,) bool: the values at these query points alone ((Q', C) or (B, Q', C), Q'
+    of them), each the figure the call without it gives there (the unit of distance is
+    still the median neighbour spacing of all ``q_film``; every fit is its own).
     """
     n_val = np.asarray(n_val, float)
     batch = n_val.ndim == 3
@@ -54,7 +58,10 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     d = d[keep].reshape(-1, k)
     j = j[keep].reshape(-1, k)
     unit = float(np.median(d[:, 0])) or 1.0
-    dx = (n_film[j] - np.asarray(q_film)[:, None, :]) / unit  # (Q, k, 2)
+    q_film = np.asarray(q_film)
+    if only is not None:  # the fits at these queries only (the unit from all of them)
+        d, j, q_film = d[only], j[only], q_film[only]
+    dx = (n_film[j] - q_film[:, None, :]) / unit  # (Q, k, 2)
     X, Y = dx[..., 0], dx[..., 1]
     cols = [np.ones(d.shape), X, Y]
     if degree >= 2 and k >= 9:
@@ -220,8 +227,12 @@ def _local_prediction(film, r, k_max=16, sigma=None):
     """
     pred = local_fit(film, film, r, k_max, 2, n_sigma=sigma)
     dev = np.hypot((r - pred)[..., 0], (r - pred)[..., 1])
-    out = local_fit(film, film, r, k_max, 2, n_sigma=sigma, n_dev=dev)
-    inner = ~outline(film)
+    edge = outline(film)
+    # the second pass's quadratic only where it is kept (the outline): inside, the cubic
+    out = np.empty(np.shape(pred))
+    out[..., edge, :] = local_fit(film, film, r, k_max, 2, n_sigma=sigma, n_dev=dev,
+                                  only=edge)
+    inner = ~edge
     if inner.any():
         out[..., inner, :] = local_fit(film[inner], film, r, 24, 3, n_sigma=sigma, n_dev=dev)
     return out
