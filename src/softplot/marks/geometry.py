@@ -119,16 +119,23 @@ def _box(x, b, c, a1, a2, s):
     return b + c * (ndtr((x - a1) / s) - ndtr((x - a2) / s))
 
 
-def _box_jac(x, b, c, a1, a2, s):
-    """Model and derivatives by (b, c, a1, a2, s): (..., n) and (..., n, 5), the parameters
-    broadcast against the samples ``x`` (e.g. (K, 1) each for K profiles)."""
+def _box_jac(x, b, c, a1, a2, s, cols=5):
+    """Model and derivatives by (b, c, a1, a2, s): (..., n) and (..., n, cols), the
+    parameters broadcast against the samples ``x`` (e.g. (K, 1) each for K profiles); the
+    columns past the fifth (``cols`` > 5) are left for the caller to fill (written in place:
+    no stacked copy)."""
     z1, z2 = (x - a1) / s, (x - a2) / s
     P = ndtr(z1) - ndtr(z2)
     g1 = np.exp(-0.5 * z1 * z1) / np.sqrt(2.0 * np.pi)
     g2 = np.exp(-0.5 * z2 * z2) / np.sqrt(2.0 * np.pi)
-    J = np.stack(np.broadcast_arrays(1.0, P, -c * g1 / s, c * g2 / s,
-                                     -c * (z1 * g1 - z2 * g2) / s), -1)
-    return b + c * P, J
+    f = b + c * P
+    J = np.empty(np.broadcast_shapes(f.shape, np.shape(s)) + (cols,))
+    J[..., 0] = 1.0
+    J[..., 1] = P
+    J[..., 2] = -c * g1 / s
+    J[..., 3] = c * g2 / s
+    J[..., 4] = -c * (z1 * g1 - z2 * g2) / s
+    return f, J
 
 
 def _lm(resid_jac, p, lo, hi, iterations=30):
@@ -248,13 +255,13 @@ def _fit_along(u: np.ndarray, profiles, lo: float, hi: float, centre: float = 0.
 
     def rj(q, k):
         qc = q[:, :, None]  # (k, 6, 1): each parameter against the samples
-        f, J = _box_jac(u, *np.moveaxis(qc[:, :5], 1, 0))
+        f, J = _box_jac(u, *np.moveaxis(qc[:, :5], 1, 0), cols=6)
         # the other bar where it crosses: its cross-section, blurred alike, at k x the level
         zp, zm = (u + h) / qc[:, 4], (u - h) / qc[:, 4]
         L = ndtr(zp) - ndtr(zm)
         gp = np.exp(-0.5 * zp * zp) / np.sqrt(2.0 * np.pi)
         gm = np.exp(-0.5 * zm * zm) / np.sqrt(2.0 * np.pi)
-        J = np.concatenate([J, (qc[:, 1] * L)[..., None]], -1)
+        J[..., 5] = qc[:, 1] * L
         J[..., 1] += qc[:, 5] * L
         J[..., 4] += -qc[:, 1] * qc[:, 5] * (zp * gp - zm * gm) / qc[:, 4]
         return f + qc[:, 1] * qc[:, 5] * L - data[k], J
