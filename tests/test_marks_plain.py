@@ -104,3 +104,16 @@ def test_independent_scans_sample():
     aerial = summarise([r for r in rows if r["camera"] == "aerial-23x47"])
     assert film["median_px"] < 0.06, film
     assert aerial["median_px"] < 0.25, aerial
+
+
+def test_shadow_on_a_negative_is_not_taken_for_the_border():
+    """Independent scan 118: a Rollei negative whose top row lies under a shadow (clear film,
+    as bright as the unexposed border) that also covers half of the second row's crosses (not
+    among the candidates). The crosses alone favoured the naming two rows off, which puts the
+    format's edge on the shadow's; every cross came out two rows off. The format's edge the
+    scan shows must decide: every measured cross with its own row and column."""
+    case, row = run_plain(118)
+    assert row["result"], row["error"]
+    assert row["wrong"] == [] and row["claimed"] == []
+    assert row["measured"] >= 0.9 * row["visible"]
+

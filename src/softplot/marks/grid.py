@@ -646,8 +646,12 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
 #: the format's edge evidence per step of :func:`_edge_steps`, in units of the mean evidence
 #: of a cross
 EDGE_WEIGHT = 1.0
-#: shifts scoring within this many crosses' evidence of the best are weighed by the edges
-EDGE_REACH = 4.0
+#: shifts scoring within this many crosses' evidence of the best are weighed by the edges (a
+#: shadow on a negative, clear film as bright as the unexposed border, over the top row and
+#: half of the next, whose crosses are then not among the candidates: the crosses favoured
+#: the naming two rows off by 5.5 crosses, while the format's edge lay where only the right
+#: naming puts it; with 4 its edges were never weighed)
+EDGE_REACH = 8.0
 
 
 def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,

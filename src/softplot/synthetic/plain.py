@@ -25,7 +25,8 @@ Every figure a user cannot know is drawn independently of the certificate: the t
 (0.4-2.5x the certificate's), line width (0.5-2x), opacity, polarity, crop, rotation. Truth is
 the crosses' centres in the pixel system of the scan (x right, y down, (0, 0) the centre of the
 top-left pixel), each with a state: ``visible`` (wholly inside the scan, changing the
-noise-free scan by at least :data:`FAINT` of its grey range), ``faint`` (less: neither
+noise-free scan by at least :data:`FAINT` of its grey range and :data:`VISIBLE_SNR` times
+the noise's standard deviation around it), ``faint`` (less: neither
 expected nor a claim), ``dark`` (below :data:`DARK`: a measurement is a claim), ``cut`` (the
 scan's edge cuts it) or ``outside``.
 
@@ -57,6 +58,9 @@ CAMERAS = {"rollei-6006": 0.4, "pentax-645": 0.25, "hasselblad-mk70": 0.2,
 FAINT = 0.02
 #: below this it is "dark": a measurement there is a claim on an invisible cross
 DARK = 0.005
+#: a cross is also "faint" where its contrast is below this many times the noise's standard
+#: deviation around it (grain and sensor noise, robust estimate): it does not stand out
+VISIBLE_SNR = 2.0
 
 
 @dataclass
@@ -282,6 +286,7 @@ def make_plain(seed: int, max_side: int = 2600, **override) -> PlainCase:
     diff = np.abs(clean - bare) / span
     img = (optics(Tc) - lo) / span
     img = np.clip(img + rng.normal(0, 0.004, img.shape).astype(np.float32), 0, 1)
+    noise = img - np.clip((clean - lo) / span, 0, 1)  # grain and sensor noise
     if rgb:
         if negative:
             mask = np.array([0.95, 0.62, 0.38], np.float32)  # the orange mask (R, G, B)
@@ -305,10 +310,12 @@ def make_plain(seed: int, max_side: int = 2600, **override) -> PlainCase:
         xi, yi = int(round(x)), int(round(y))
         win = diff[max(yi - r, 0):max(yi + r + 1, 0), max(xi - r, 0):max(xi + r + 1, 0)]
         con = float(win.max()) if win.size else 0.0
-        if st == "visible" and con < FAINT:
+        nwin = noise[max(yi - r, 0):max(yi + r + 1, 0), max(xi - r, 0):max(xi + r + 1, 0)]
+        sd = float(1.4826 * np.median(np.abs(nwin - np.median(nwin)))) if nwin.size else 0.0
+        if st == "visible" and con < max(FAINT, VISIBLE_SNR * sd):
             st = "dark" if con < DARK else "faint"
         marks.append({"name": names[i], "x": float(x), "y": float(y), "state": st,
-                      "arms": 1 if one_armed[i] else 2})
+                      "arms": 1 if one_armed[i] else 2, "contrast": con, "noise": sd})
     params = dict(p, width_x=width / (res.line_width_mm * ppm),
                   one_armed=int(one_armed.sum()))
     pitch = min(res.pitch_x, res.pitch_y) * ppm
