@@ -205,6 +205,28 @@ def test_sweep_renders_named_by_the_formats_edge_over_faint_end_crosses(seed):
     assert sc.measured >= 0.7 * sc.visible
 
 
+@pytest.mark.parametrize("seed", [
+    362,  # Hasselblad half frame over a busy colour negative: a scratch on the border beyond
+          # the format's edge gives the lattice an end column of strong peaks
+    345,  # Hasselblad whole frame, its bottom row under a black band: not one cross there
+          # measured, and the naming is right
+])
+def test_a_naming_moves_off_an_end_column_of_peaks_beyond_the_formats_edge(seed):
+    """A lattice whose outermost column is scene content on the film's border (none of its
+    crosses holds at full resolution, though they would lie whole in the scan) is named one
+    column off by the candidates; where the format's edge of the naming moved off that
+    column shows, and the column the move names anew lies off the scan, the naming moves:
+    every cross with its own row and col, none refused, nothing claimed. An outer row under
+    a flat dark band (no format's edge where the moved naming puts it) keeps its naming."""
+    from softplot.synthetic.sweep import make_case, run_case
+
+    sc, det = run_case(make_case(seed))
+    assert sc.result, sc.error
+    assert not sc.ambiguous_truth
+    assert sc.wrong == [] and sc.claimed == [] and sc.gross == []
+    assert sc.measured >= 0.9 * sc.visible
+
+
 def test_a_few_peaks_of_the_other_polarity_do_not_keep_the_reseau_from_being_fitted():
     """Sweep render 233, a busy 3 x 3 Pentax turned a quarter: the bright peaks give a
     lattice of 3 clutter peaks that scores above what the dark crosses' candidates could

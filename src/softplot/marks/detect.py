@@ -61,6 +61,8 @@ from softplot.marks.lattice import (
     between_nodes,
     estimate_dpi,
     fit_lattice,
+    frame_evidence,
+    renamed,
     reseau_sized,
     turn_template,
 )
@@ -209,10 +211,41 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
                     else MIN_MEASURED)
     pr = predict(lat, res.film(), ppm, blur_px)
     ambiguous = lat.grid.ambiguous
+    # an ambiguous naming may move (:func:`renamed`) off an outer line, the format's edge
+    # deciding
+    keep = lat if ambiguous else None
+    edge = (frame_evidence(ov.image, ov.factor, ov.px_per_mm, min(res.pitch_x, res.pitch_y))
+            if ambiguous else None)
     del ov, lat  # the overview and the NCC map are not needed any more: free them
-    geom, pr = centred_geometry(sc, pr, shape, min(res.pitch_x, res.pitch_y) * ppm)
+    geom, m, v, pr, need = _measure(sc, pr, res, shape, ppm, rules, scene, timings, t0,
+                                    min_measured)
+    moved = None
+    if keep is not None:
+        ok = np.asarray(m.status) == "measured"
+        moved = renamed(keep, res, ok, pr.inside(geom.shape(), sc.width, sc.height)[0],
+                        (sc.width, sc.height), v.H, edge, cam.format_mm)
+    del keep, edge
+    if moved is not None:
+        # an outer line of the naming held no cross: the naming moved off it, measured again
+        pr = predict(moved, res.film(), ppm, blur_px)
+        del moved
+        geom, m, v, pr, need = _measure(sc, pr, res, shape, ppm, rules, scene, timings, t0,
+                                        min_measured)
+    min_measured, few_mm = need
+    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured, few_mm)
+    timings["total"] = time.perf_counter() - t0
+    return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
+                             warnings, timings, ambiguous)
+
+
+def _measure(sc, pr, res, shape0, ppm, rules, scene, timings, t0, min_measured):
+    """The stages after the prediction ``pr`` (of the grid ``res``): the crosses' geometry,
+    their measurement and validation: ``(geom, m, v, pr, (min_measured, few_mm))``, ``pr``
+    with the geometry's centres (pixel system), the fewest crosses measured and the grid's
+    tolerance (mm) that make a reseau."""
+    geom, pr = centred_geometry(sc, pr, shape0, min(res.pitch_x, res.pitch_y) * ppm)
     timings["profiles"] = time.perf_counter() - t0
-    geom = choose_width(sc, pr, geom, shape.width, rules, guess_arm=shape.length)
+    geom = choose_width(sc, pr, geom, shape0.width, rules, guess_arm=shape0.length)
     shape = geom.shape()
     timings["geometry"] = time.perf_counter() - t0
     # crosses whose extent leaves the scan are cut: never fitted
@@ -227,10 +260,7 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         few_mm = SIMILAR_TOL_MM if min_measured < MIN_DENSE else few_mm
     timings["lsm"] = time.perf_counter() - t0
     v = validate(sc, pr, m, rules)
-    warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured, few_mm)
-    timings["total"] = time.perf_counter() - t0
-    return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
-                             warnings, timings, ambiguous)
+    return geom, m, v, pr, (min_measured, few_mm)
 
 
 def _check_size(sc, cam, dpi, name) -> None:

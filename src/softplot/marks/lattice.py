@@ -11,7 +11,7 @@ hand-over is :class:`Lattice`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,11 +30,17 @@ from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
 
 __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
-           "seeable", "between_nodes", "reseau_sized", "FRAME_STEP", "SCALE_TOL", "HALF_STEPS",
-           "MIN_PART", "MIN_SPANNING"]
+           "seeable", "between_nodes", "reseau_sized", "renamed", "FRAME_STEP", "SCALE_TOL",
+           "HALF_STEPS", "MIN_PART", "MIN_SPANNING"]
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
 FRAME_STEP = 0.25
+#: the fewest crosses of an outer row (column) inside the scan, none of them measured, that
+#: move an ambiguous naming off it (:func:`renamed`)
+EMPTY_LINE = 3
+#: the step of grey (over the scan's range) of the format's edge that a naming moved off an
+#: empty outer line shows (:func:`renamed`)
+MOVED_EDGE_STEP = 0.4
 #: the fraction of a format edge where the film inside must show for the edge's step to be
 #: read there only (:func:`frame_evidence`)
 EDGE_SHOWN = 0.3
@@ -284,11 +290,89 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     best = None
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
         g, pk, _ = fits.get(sg, (None, None, None))
-        if g is not None and (best is None or (len(g.node) >= MIN_FIT, g.score)
-                              > (len(best.grid.node) >= MIN_FIT, best.grid.score)):
+        if g is not None and (best is None or _rank(g, res) > _rank(best.grid, res)):
             best = Lattice(grid=g, sign=sg, peaks=pk, ncc=cands.ncc, half=cands.half,
                            factor=f, densified=sg in dense)
     return best
+
+
+def renamed(lat: Lattice, res, measured, shown, size, H, edge, format_mm) -> Lattice | None:
+    """An ambiguous naming moved by one row or column off an empty outer line: the lattice
+    ``lat`` named again when, at full resolution, an outer row (column) of the grid holds at
+    least :data:`EMPTY_LINE` crosses whole inside the scan (``shown``) and not one of them
+    measured (``measured``; both (N,) bool, row-major as :meth:`Reseau.film`), the line
+    that the move names anew beyond the opposite outer one lies off the scan (``size``
+    (width, height) px), and the format's edge of the moved naming (``format_mm``) beside
+    the empty line shows a step of grey of at least :data:`MOVED_EDGE_STEP` of the scan's
+    range: the lattice's outermost peaks were scene content on the film's border, and the
+    crosses the scan holds all keep a name. ``H``: film mm -> pixel system of the measured
+    crosses; ``edge``: :func:`frame_evidence` of the scan. None when no move, or more than
+    one, fits.
+    """
+    rows, cols = res.rows, res.cols
+    meas = np.asarray(measured, bool).reshape(rows, cols)
+    ins = np.asarray(shown, bool).reshape(rows, cols)
+    film = res.film().reshape(rows, cols, 2)
+    W, Hh = size
+    found = grid.apply_h(H, film[meas])
+    moves = []
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        if (cols if dc else rows) < 3:
+            continue
+        # the outer line that leaves the grid, and the first one of the other side
+        leave = (slice(None), cols - 1 if dc > 0 else 0) if dc else (rows - 1 if dr > 0 else 0,
+                                                                      slice(None))
+        first = (slice(None), 0 if dc > 0 else cols - 1) if dc else (0 if dr > 0 else rows - 1,
+                                                                     slice(None))
+        if meas[leave].any() or ins[leave].sum() < EMPTY_LINE:
+            continue
+        step = (film[0, 1] - film[0, 0]) * dc + (film[1, 0] - film[0, 0]) * dr
+        new = grid.apply_h(H, film[first] - step)  # pixel system
+        if np.any((new[:, 0] >= 0) & (new[:, 0] <= W - 1) & (new[:, 1] >= 0)
+                  & (new[:, 1] <= Hh - 1)):
+            continue
+        if _edge_step(film, film[leave], step, H, edge, format_mm, found, size) < \
+                MOVED_EDGE_STEP:
+            continue
+        moves.append((dr, dc, step))
+    if len(moves) != 1:
+        return None
+    dr, dc, step = moves[0]
+    g = lat.grid
+    r, c = g.node // cols + dr, g.node % cols + dc
+    keep = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    # a cross named (r, c) is at the film position of (r - dr, c - dc) before: film + step
+    T = np.array([[1.0, 0.0, -step[0]], [0.0, 1.0, -step[1]], [0.0, 0.0, 1.0]])
+    g2 = replace(g, H=g.H @ T, index=g.index[keep], node=(r * cols + c)[keep])
+    return replace(lat, grid=g2)
+
+
+def _edge_step(film, line, step, H, edge, format_mm, found, size) -> float:
+    """The step of grey (over the scan's range, :func:`frame_evidence`) across the format's
+    edge beside the outer line ``line`` (film mm) of a naming moved by ``step`` (film mm)
+    off it; ``film`` (rows, cols, 2) the grid, ``H`` film mm -> pixel system."""
+    centre = film.reshape(-1, 2).mean(0) - step  # the moved grid's centre, film mm
+    out = line.mean(0) - film.reshape(-1, 2).mean(0)
+    k = int(np.argmax(np.abs(out)))
+    half = 0.5 * np.asarray(format_mm, float)
+    a, b = centre.copy(), centre.copy()
+    a[k] = b[k] = centre[k] + np.sign(out[k]) * half[k]
+    a[1 - k], b[1 - k] = centre[1 - k] - half[1 - k], centre[1 - k] + half[1 - k]
+    p = grid.apply_h(H, np.array([a, b, centre]))  # pixel system
+    t = (p[1] - p[0]) / max(float(np.hypot(*(p[1] - p[0]))), 1e-9)
+    n = p[2] - p[0] - np.dot(p[2] - p[0], t) * t
+    n /= max(float(np.hypot(*n)), 1e-9)  # towards the film
+    far = 4.0 * float(sum(size))
+    # the edge reaching beyond the scan, the quadrilateral's other edges far off it
+    q0, q1 = p[0] - far * t, p[1] + far * t
+    corners = np.array([q0, q1, q1 + far * n, q0 + far * n])[None]
+    return float(4.0 * edge(corners, found)[0] + FRAME_STEP)
+
+
+def _rank(g, res) -> tuple:
+    """The order of fits of each sign: one that can be a reseau (:func:`reseau_sized`)
+    first, then one of at least :data:`MIN_FIT` crosses, then the higher score."""
+    return reseau_sized(g.node, res), len(g.node) >= MIN_FIT, g.score
 
 
 def reseau_sized(node, res) -> bool:
