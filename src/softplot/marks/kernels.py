@@ -18,8 +18,9 @@ The rest of an LSM step is compiled too, each the NumPy path's arithmetic in one
 gradient), :func:`invert` and :func:`advance` (the pinned, damped normal equations' inverse
 and the limited update), :func:`influence` (the centre's influence on each pixel); and
 :func:`gather_cross` (the pixels a fit uses), :func:`corr_sums` (the residual correlation of
-the covariance, summed directly over the few lags it uses instead of by FFTs) and
-:func:`cross_template` (the joint scene's template). Most of a fit of a few marks was NumPy's
+the covariance, summed directly over the few lags it uses instead of by FFTs),
+:func:`cross_template` (the joint scene's template) and :func:`scale_columns` (the first step's
+Jacobian scaled by the contrast). Most of a fit of a few marks was NumPy's
 per-call overhead; these passes hold the GIL only to start
 (``tests/test_marks_speed_accuracy.py::test_compiled_lsm_step_gather_and_correlation_match_numpy``).
 :func:`fine_steps` runs LSM's whole fine stage in one compiled loop, mark by mark (the same
@@ -47,8 +48,8 @@ import numpy as np
 from softplot.marks.template import _ZSAT, _Phi_phi
 
 __all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
-           "cross_template", "corr_sums", "half_arms", "local_solve", "fine_steps", "load",
-           "ready"]
+           "cross_template", "corr_sums", "half_arms", "local_solve", "fine_steps",
+           "scale_columns", "load", "ready"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -331,6 +332,28 @@ def weigh(p, data, M, J, robust):
     # J^T J by BLAS (faster than a compiled loop over the 78 products)
     Nm = np.matmul(J.transpose(0, 2, 1), J).astype(float)
     return R, WR, W, Nm, g, rss, wsum
+
+
+@njit(fastmath=False, cache=True, nogil=True)
+def _scale_columns(J, b, ncol):
+    n, npx, K = J.shape
+    for i in range(n):
+        for j in range(npx):
+            s = b[i, j]
+            for a in range(ncol):
+                J[i, j, a] *= s
+
+
+def scale_columns(J, b, ncol):
+    """``J[..., :ncol] *= b[..., None]`` in place: the first ``ncol`` columns of the
+    Jacobian ``J`` (N, P, K) float32 scaled by ``b`` (N, P) float32 per pixel (the initial
+    step's contrast over the scene, ``lsm._step``), compiled: the same float32 products
+    without NumPy's strided pass over the columns."""
+    if (J.dtype == np.float32 and b.dtype == np.float32 and J.flags.c_contiguous
+            and J.flags.writeable and b.shape == J.shape[:2]):
+        _scale_columns(J, np.ascontiguousarray(b), int(ncol))
+    else:
+        J[..., :ncol] *= b[..., None]
 
 
 def influence(Ninv, J):
@@ -1033,6 +1056,7 @@ def load() -> bool:
             half_arms(p, data, dict(Tu=z, Tv=z, u=z, v=z, r=z, w=z, s0sq=np.ones(1)), 1.0)
             advance(Ninv, g, wsum, wrr, 12, p.copy())
             influence(np.eye(12)[None], J)
+            scale_columns(J, np.ones(J.shape[:2], np.float32), 7)
             corr_sums(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.int64), z > -1, z,
                       np.zeros((1, 2, 1), np.float32), 1)
             gather_cross(np.zeros((1, 3, 3), np.float32), np.zeros((1, 2)), np.zeros((1, 2)),

@@ -372,7 +372,7 @@ def _step(p, data, shape, active, robust, init=False, prior=None):
         p[:, 9:12] = 0.0
     if jit and init:  # tilt and saturated level are 0 now: background S, contrast b - S
         b = p[:, 8:9].astype(np.float32) - data[4]
-        J[..., :7] *= b[..., None]
+        kernels.scale_columns(J, b, 7)  # J[..., :7] *= b[..., None]
         M = p[:, 7:8].astype(np.float32) + data[4] + b * T
     elif jit:  # one compiled pass (softplot.marks.kernels), else NumPy
         M, T, Tu, Tv, u, v, J = kernels.cross_model(p, data, shape)
