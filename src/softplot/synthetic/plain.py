@@ -283,7 +283,8 @@ def make_plain(seed: int, max_side: int = 2600, **override) -> PlainCase:
     # (the brightest 0.2 % saturate: the clear crosses of a negative often do)
     lo, hi = np.percentile(clean[::4, ::4], [0.2, 99.8])
     span = max(hi - lo, 1e-6)
-    diff = np.abs(clean - bare) / span
+    # the cross's change to the noise-free scan as stored: where the sensor saturates, none
+    diff = np.abs(np.clip((clean - lo) / span, 0, 1) - np.clip((bare - lo) / span, 0, 1))
     img = (optics(Tc) - lo) / span
     img = np.clip(img + rng.normal(0, 0.004, img.shape).astype(np.float32), 0, 1)
     noise = img - np.clip((clean - lo) / span, 0, 1)  # grain and sensor noise
