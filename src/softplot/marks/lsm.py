@@ -486,10 +486,13 @@ def _steps(p, data, shape, full, robust, it_from, max_iter, tol, todo, last, con
         q = p[todo]
         dc, sig, st = _step(q, sub, shape, full, robust=rob, init=(it == 1 and init))
         p[todo] = q
-        if last is None:
-            last = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in st.items()}
-        for k, v in st.items():
-            last[k][todo] = v
+        if last is None and todo.size == n:  # every mark's first state: the step's own
+            last = st  # arrays (new ones each step), not copied
+        else:
+            if last is None:
+                last = {k: np.empty((n,) + v.shape[1:], v.dtype) for k, v in st.items()}
+            for k, v in st.items():
+                last[k][todo] = v
         if (rob and it > 2) or not robust:
             done = _converged(dc, sig, tol)
             converged[todo[done]] = True
