@@ -129,3 +129,24 @@ def test_a_whole_grid_decides_the_polarity():
     assert row["result"], row["error"]
     assert row["wrong"] == [] and row["claimed"] == []
     assert row["measured"] == row["visible"] == 25
+
+
+def test_unknown_dpi_on_noise_is_refused_in_one_line():
+    """Without a dpi, a scan with no grid makes the estimate try every scale of both
+    polarities: it must end in the one-line refusal, never in another error."""
+    from softplot.io import Scan
+    from softplot.marks import DetectionError, detect
+
+    noise = np.random.default_rng(3).integers(0, 255, (900, 900)).astype(np.uint8)
+    with pytest.raises(DetectionError, match="cannot estimate the dpi|no reseau"):
+        detect(Scan.from_array(noise, dpi=None), "hasselblad-mk70")
+
+
+def test_unknown_dpi_tries_the_second_polarity():
+    """Independent scan 150 (a grainy Rollei colour negative without a dpi): no fit of the
+    likelier polarity holds the whole grid, so the estimate goes on to the other polarity's
+    candidates; the dpi within 0.5 %, every cross named right."""
+    case, row = run_plain(150, dpi_known=False)
+    assert row["result"], row["error"]
+    assert abs(row["dpi"] / case.dpi - 1) < 0.005
+    assert row["wrong"] == [] and row["claimed"] == []

@@ -532,16 +532,17 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
     best_g = None
     pmin = min(res.pitch_x, res.pitch_y)
     need = max(4, 0.2 * res.count)
-    for q in cands.peaks.values():
+    for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):  # the likelier sign first
+        q = cands.peaks[sg]
         xy = coarse.ov_to_full(q.xy, f)
         # candidate scales: the size-based guess (the scan may show more than the format)
         # and the most frequent neighbour spacing of the strongest peaks (or its double,
         # when peaks also sit half-way between crosses)
-        cands = list(ppm * SIZE_SCALES)
+        scales = list(ppm * SIZE_SCALES)
         sp = grid.estimate_spacing(xy[np.argsort(-q.score)[: max(int(1.5 * res.count), 8)]])
         if sp is not None:
-            cands += [sp / pmin, 2.0 * sp / pmin]
-        for k in cands:
+            scales += [sp / pmin, 2.0 * sp / pmin]
+        for k in scales:
             g0 = grid.fit_grid(xy, q.score, res, (scan.width, scan.height), px_per_mm=k,
                                rotate_deg=rotate_deg)
             # a lattice of too few nodes never wins over one of enough (a few strong scene
@@ -549,6 +550,11 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
             if g0 is not None and (best_g is None or (len(g0.node) >= need, g0.score)
                                    > (len(best_g.node) >= need, best_g.score)):
                 best_g = g0
+            if g0 is not None and len(g0.node) >= max(
+                    need, WHOLE * crosses_in(scan, res, g0.px_per_mm)):
+                # the whole grid the scan can hold: its scale is the scan's (the scales
+                # left, each a lattice fit, would cost seconds on a small grid)
+                return g0.px_per_mm * MM_PER_INCH
     if best_g is None or len(best_g.node) < need:
         raise DetectionError(f"{name}: cannot estimate the dpi: no regular grid of crosses "
                              f"found (expected {res.rows}x{res.cols} crosses at "
