@@ -428,6 +428,31 @@ def compare(other: str, runs: int, n_threads: int, scene: str = "busy") -> None:
     print(f"load average at end: {_load()}")
 
 
+def dpi_estimate(runs: int) -> None:
+    """``--dpi-estimate``: detection of three scans of the independent renderer
+    (``softplot.synthetic.plain`` seeds 1, 22, 13: Rollei 6006, Hasselblad, Pentax 645) with
+    their dpi given and with it estimated, in this process; medians of ``runs`` after a
+    warm-up."""
+    from softplot.io import Scan
+    from softplot.marks import detect
+    from softplot.synthetic.plain import make_plain
+
+    print(f"load average at start: {_load()}")
+    for seed in (1, 22, 13):
+        c = make_plain(seed)
+        for known in (True, False):
+            t = []
+            for i in range(runs + 1):
+                t0 = time.perf_counter()
+                detect(Scan.from_array(c.image, dpi=c.dpi if known else None), c.camera)
+                if i:
+                    t.append(time.perf_counter() - t0)
+            print(f"plain {seed} {c.camera} {c.image.shape[1]} x {c.image.shape[0]} px, dpi "
+                  f"{'given' if known else 'estimated'}: detect median "
+                  f"{statistics.median(t):.3f} s (n={len(t)})")
+    print(f"load average at end: {_load()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -449,7 +474,12 @@ def main() -> None:
                          "(--threads, default 1)")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--worker", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--dpi-estimate", action="store_true",
+                    help="detection with the dpi given and estimated (independent scans)")
     a = ap.parse_args()
+    if a.dpi_estimate:
+        dpi_estimate(a.runs)
+        return
     if a.child:
         child(*a.child)
         return
