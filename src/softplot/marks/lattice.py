@@ -379,8 +379,14 @@ def _rank(g, res, n_in: int | None = None) -> tuple:
     a scan's bright border full of grain gives the peaks of the crosses' polarity a high
     clutter level (a negative's 25 of 25 clear crosses scored 0.73), and a few noise peaks
     of the other polarity on a lattice can score more."""
-    whole = n_in is not None and len(g.node) >= max(MIN_PART, WHOLE * n_in)
+    whole = n_in is not None and whole_grid(len(g.node), n_in)
     return reseau_sized(g.node, res), whole, len(g.node) >= MIN_FIT, g.score
+
+
+def whole_grid(n_nodes: int, n_in: int) -> bool:
+    """Does a fit of ``n_nodes`` crosses hold the whole grid of the ``n_in`` crosses the scan
+    can hold (:data:`WHOLE` of them, at least :data:`MIN_PART`)?"""
+    return n_nodes >= max(MIN_PART, WHOLE * n_in)
 
 
 def reseau_sized(node, res) -> bool:
@@ -550,8 +556,8 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
             if g0 is not None and (best_g is None or (len(g0.node) >= need, g0.score)
                                    > (len(best_g.node) >= need, best_g.score)):
                 best_g = g0
-            if g0 is not None and len(g0.node) >= max(
-                    need, WHOLE * crosses_in(scan, res, g0.px_per_mm)):
+            if g0 is not None and whole_grid(len(g0.node),
+                                             crosses_in(scan, res, g0.px_per_mm)):
                 # the whole grid the scan can hold: its scale is the scan's (the scales
                 # left, each a lattice fit, would cost seconds on a small grid)
                 return g0.px_per_mm * MM_PER_INCH
