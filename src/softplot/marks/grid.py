@@ -652,6 +652,10 @@ EDGE_WEIGHT = 1.0
 #: the naming two rows off by 5.5 crosses, while the format's edge lay where only the right
 #: naming puts it; with 4 its edges were never weighed)
 EDGE_REACH = 8.0
+#: the lattice rows and columns beyond a naming's format that its edge and the border may fill
+#: with peaks (the format's edge, notches, corners): peaks farther out are crosses the naming
+#: leaves off its grid, and count against it as peaks off the grid inside the format do
+BEYOND = 1
 
 
 def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
@@ -662,8 +666,9 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
 
     Works on a map of relative lattice indices covering every admissible shift: the score of
     a shift is the evidence of the peaks on the grid (their scores above the clutter's,
-    :func:`_evidence`) minus that of the peaks off it, minus a penalty for every cross of
-    the grid that would lie inside the image without a peak (box sums over integral
+    :func:`_evidence`) minus that of the peaks off it (inside its format, or more than
+    :data:`BEYOND` rows or columns beyond it), minus a penalty for every cross of the grid
+    that would lie inside the image without a peak, weak or strong (box sums over integral
     images give all shifts at once), except where no cross could be seen
     (``seeable(xy, found)``: positions (K, 2) and the lattice's crosses (n, 2), pixel
     system -> (K,) bool, false over a flat dark region or the border beyond the format);
@@ -685,7 +690,10 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     ni, nj = i_hi - i_lo + 1, j_hi - j_lo + 1
     S = np.zeros((nj, ni))
     np.add.at(S, (ri - j_lo, ci - i_lo), sc)
-    seen_map = S > 0
+    # every peak on a node, weak ones too, shows a cross there (a weak one counts neither for
+    # a naming nor against it, :func:`_evidence`; its node is not a missed cross)
+    seen_map = np.zeros((nj, ni), bool)
+    seen_map[ri - j_lo, ci - i_lo] = True
     jj, ii = np.mgrid[j_lo : j_hi + 1, i_lo : i_hi + 1]
     pos = p0 + np.column_stack([ii.ravel(), jj.ravel()]) @ Bc.T
     inside = ((pos[:, 0] >= margin_px) & (pos[:, 0] <= W - 1 - margin_px)
@@ -719,8 +727,9 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
     b = np.arange(ni - cols + 1)[None, :] + i_lo + (cols - 1) / 2.0
     off = np.hypot(p0[0] + Bc[0, 0] * b + Bc[0, 1] * a - (W - 1) / 2,
                    p0[1] + Bc[1, 0] * b + Bc[1, 1] * a - (Hh - 1) / 2)
-    # peaks off the grid count against a shift, but for those on or beyond its format's
-    # edge (a quarter pitch or less inside): the edge and the border give peaks, no cross
+    # peaks off the grid count against a shift, but for those on its format's edge (a
+    # quarter pitch or less inside) or up to BEYOND rows or columns beyond it: the edge and
+    # the border give peaks, no cross; a cross farther out is one the shift leaves off its grid
     held = sc.sum()
     if format_mm is not None:
         # rows (columns) beyond the grid's last one still inside the format, a quarter
@@ -728,7 +737,8 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
         kx, ky = (max(0, int(np.ceil(0.5 * fmt / pitch - 0.25 - (n - 1) / 2)) - 1)
                   for fmt, pitch, n in ((format_mm[0], reseau.pitch_x, cols),
                                         (format_mm[1], reseau.pitch_y, rows)))
-        held = box_sums(S, -ky, rows + ky, -kx, cols + kx)
+        held = (box_sums(S, -ky, rows + ky, -kx, cols + kx) + held
+                - box_sums(S, -ky - BEYOND, rows + ky + BEYOND, -kx - BEYOND, cols + kx + BEYOND))
     total = on - (held - on) - 0.5 * mean_sc * unseen - 1e-6 * off
     # the same, forgiving crosses missed where none could be seen
     lenient = total + 0.5 * mean_sc * box_sums(hidden)
@@ -738,8 +748,11 @@ def identify(lat: Lattice, score, reseau: Reseau, image_size, margin_px=0.0,
         near = np.argwhere((total >= total.max() - EDGE_REACH * mean_sc)
                            | (lenient >= lenient.max() - EDGE_REACH * mean_sc))
         if len(near) > 1:
+            # the film beside the edge is judged from the peaks that count as crosses: weak
+            # ones in a bright shadow (as bright as the border) would make the shadow film and
+            # the edge's step there missing
             ev = _edge_steps(frame_evidence, near, p0, Bc, j_lo, i_lo, reseau, format_mm,
-                             p0 + lat.idx[cand] @ Bc.T)
+                             p0 + lat.idx[cand[sc > 0]] @ Bc.T)
             total[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
             lenient[near[:, 0], near[:, 1]] += EDGE_WEIGHT * mean_sc * ev
     # crosses missed where none could be seen are no evidence against a shift

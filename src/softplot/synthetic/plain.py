@@ -27,8 +27,10 @@ the crosses' centres in the pixel system of the scan (x right, y down, (0, 0) th
 top-left pixel), each with a state: ``visible`` (wholly inside the scan, changing the
 noise-free scan by at least :data:`FAINT` of its grey range and :data:`VISIBLE_SNR` times
 the noise's standard deviation around it), ``faint`` (less: neither
-expected nor a claim), ``dark`` (below :data:`DARK`: a measurement is a claim), ``cut`` (the
-scan's edge cuts it) or ``outside``.
+expected nor a claim), ``dark`` (below :data:`DARK`, and changing the scan as stored, grain and
+sensor noise included, by less than that along its lines on average: a measurement is a claim;
+where the noise-free scan clips to black the noise still carries a cross), ``cut`` (the scan's
+edge cuts it) or ``outside``.
 
 :func:`make_plain` draws one seeded scan; :func:`score_plain` scores a detection against its
 truth; :func:`expected` tells whether the scan shows enough of the grid to be named;
@@ -276,18 +278,27 @@ def make_plain(seed: int, max_side: int = 2600, **override) -> PlainCase:
 
     bare = optics(T_bare)
     clean = optics(Tc)
+    T_grain = T_bare
     if grain:  # clumped grain on density
         g = cv2.GaussianBlur(rng.normal(size=(H, W)).astype(np.float32), (0, 0), 0.7)
-        Tc = Tc * 10.0 ** (-grain * 3.0 * g * np.sqrt(np.maximum(-np.log10(Tc), 0.05)))
+
+        def grained(T):
+            return T * 10.0 ** (-grain * 3.0 * g * np.sqrt(np.maximum(-np.log10(T), 0.05)))
+
+        Tc, T_grain = grained(Tc), grained(T_bare)
     # the sensor's levels: black and white where the scanner's auto-exposure puts them
     # (the brightest 0.2 % saturate: the clear crosses of a negative often do)
     lo, hi = np.percentile(clean[::4, ::4], [0.2, 99.8])
     span = max(hi - lo, 1e-6)
     # the cross's change to the noise-free scan as stored: where the sensor saturates, none
     diff = np.abs(np.clip((clean - lo) / span, 0, 1) - np.clip((bare - lo) / span, 0, 1))
-    img = (optics(Tc) - lo) / span
-    img = np.clip(img + rng.normal(0, 0.004, img.shape).astype(np.float32), 0, 1)
+    sensor = rng.normal(0, 0.004, (H, W)).astype(np.float32)
+    img = np.clip((optics(Tc) - lo) / span + sensor, 0, 1)
     noise = img - np.clip((clean - lo) / span, 0, 1)  # grain and sensor noise
+    # the cross's change to the scan as stored, with the same grain and sensor noise: where
+    # the noise-free scan clips to black, the noise still carries the cross (its lines are
+    # black more often than the film beside them)
+    stored = np.abs(img - np.clip((optics(T_grain) - lo) / span + sensor, 0, 1))
     if rgb:
         if negative:
             mask = np.array([0.95, 0.62, 0.38], np.float32)  # the orange mask (R, G, B)
@@ -314,7 +325,11 @@ def make_plain(seed: int, max_side: int = 2600, **override) -> PlainCase:
         nwin = noise[max(yi - r, 0):max(yi + r + 1, 0), max(xi - r, 0):max(xi + r + 1, 0)]
         sd = float(1.4826 * np.median(np.abs(nwin - np.median(nwin)))) if nwin.size else 0.0
         if st == "visible" and con < max(FAINT, VISIBLE_SNR * sd):
-            st = "dark" if con < DARK else "faint"
+            # "dark" only where the stored scan, too, hardly changes along the cross's lines
+            on = cover[max(yi - r, 0):max(yi + r + 1, 0), max(xi - r, 0):max(xi + r + 1, 0)] > 0.5
+            seen = float(stored[max(yi - r, 0):max(yi + r + 1, 0),
+                                max(xi - r, 0):max(xi + r + 1, 0)][on].mean()) if on.any() else 0.0
+            st = "dark" if max(con, seen) < DARK else "faint"
         marks.append({"name": names[i], "x": float(x), "y": float(y), "state": st,
                       "arms": 1 if one_armed[i] else 2, "contrast": con, "noise": sd})
     params = dict(p, width_x=width / (res.line_width_mm * ppm),
