@@ -476,7 +476,7 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_MM` in px over the root of
     the scan's variance factor, which scales it later) before the reach is counted, no bar is
     measured: the scan's neighbours predict its crosses too poorly for any bar's point to be
-    more than a guess along it. ``cov``:
+    more than a guess along it (the RMS is judged, not the floor). ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
     st = np.array(status)
@@ -488,10 +488,13 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     target = grid.apply_h(Hm, film[q]) + local_fit(film[q], film[meas], r[meas], 16, 2,
                                                      n_sigma=sigma[meas])
     loo = r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])
-    along = max(float(np.sqrt(np.mean(loo**2))), LONE_ARM_ALONG_MIN_PX)
-    if along > along_max:
+    rms = float(np.sqrt(np.mean(loo**2)))
+    # judged before the floor: at 130 dpi the floor alone (0.5 px) exceeds the 0.1 mm
+    # limit, and no bar of a well-predicted aerial frame was ever measured
+    if rms > along_max:
         return
-    along = along * prediction_reach(film[q], film[meas], Hm, sigma[meas])
+    along = max(rms, LONE_ARM_ALONG_MIN_PX) * prediction_reach(film[q], film[meas], Hm,
+                                                               sigma[meas])
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
