@@ -79,7 +79,11 @@ def test_a_few_faint_fits_do_not_make_a_reseau(monkeypatch):
     0.48 mm off the candidates' lattice: two fits pass the per-pixel tests and lie far off
     the lattice (refused), but two faint fits on the scene's corners would make four, which
     fit a projective grid of their own exactly (wrong names, claims where no cross shows).
-    Faint crosses count only among :data:`FAINT_GRID` measured crosses or more."""
+    Faint crosses count only among :data:`FAINT_GRID` measured crosses or more. (The
+    naming now also refuses the four, since peaks more than a pitch beyond a naming's format
+    count against it; the guard is shown with that rule relaxed, as it was when this render
+    was found.)"""
+    import softplot.marks.grid as grid
     import softplot.marks.measurement as measurement
     from softplot.synthetic.sweep import make_case, run_case
 
@@ -87,6 +91,9 @@ def test_a_few_faint_fits_do_not_make_a_reseau(monkeypatch):
     assert "busy" in case.conditions and "low-contrast" in case.conditions
     sc, _ = run_case(case)
     assert not sc.result and "no reseau found" in sc.error
+    monkeypatch.setattr(grid, "BEYOND", 100)
+    held, _ = run_case(case)
+    assert not held.result and "no reseau found" in held.error
     monkeypatch.setattr(measurement, "FAINT_GRID", 0)
     loose, _ = run_case(case)
     assert loose.result and (loose.wrong or loose.claimed)
