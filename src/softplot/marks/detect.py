@@ -135,7 +135,9 @@ def detect(
         The scene under each cross: "opening" the grey opening's estimate
         (:func:`softplot.marks.measure.scene_background`); "joint" also refitted with the
         scene estimated jointly with the cross (:mod:`softplot.marks.scene_tv`); "auto"
-        the joint estimate where the scene has sharp edges near the crosses.
+        the joint estimate where the scene has sharp edges near the crosses, or where the
+        crosses depart from their neighbours far beyond their own precision and the joint
+        estimate measures them better.
     grid_part : str, mapping or tuple, optional
         The part of the reseau the scan shows, when the user knows it (e.g.
         ``"cols=0:12,rows=0:6"``, :func:`parse_grid_part`): rows and columns are named within

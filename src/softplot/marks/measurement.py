@@ -3,7 +3,8 @@
 :func:`measure_crosses` fits every cross whose extent lies inside the scan with least-squares
 template matching at full resolution (:func:`softplot.marks.measure.measure`, robust weights,
 against the scene under each cross as the grey opening estimates it; where the scene has sharp
-edges at the crosses the fits are refitted with the scene estimated jointly,
+edges at the crosses, or where the crosses depart from their neighbours far beyond their
+own precision, the fits are refitted with the scene estimated jointly,
 :mod:`softplot.marks.scene`); the acceptance tests (contrast, correlation, shape, support of
 each arm) decide. Crosses whose fitted affine departs from their neighbours', or that failed,
 are refitted with the neighbours' affine and blur held (:func:`shape_from_neighbours`);
@@ -22,6 +23,7 @@ from softplot.marks import grid
 from softplot.marks.measure import (
     AcceptRules,
     Fine,
+    _merge_fine,
     measure,
     median_blur,
     peer_gain,
@@ -107,7 +109,10 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
     ("auto", "opening", "joint"). Where :data:`BLUR_REFIT` times the crosses' median fitted
     blur exceeds :data:`BLUR_GROW` times the expected one (``pr.s0``), they are fitted again
     with windows for that blur; if that fits better (:func:`_fits_better`) it is kept and
-    ``pr.s0`` raised to it (the blur later refits and rescues start from)."""
+    ``pr.s0`` raised to it (the blur later refits and rescues start from). With ``scene``
+    "auto", crosses fitted over the opening's scene that depart from their neighbours far
+    beyond their own precision (:func:`_scene_disturbs`) are fitted again with the joint
+    scene, kept if that fits better (:func:`_keep_opening`)."""
     idx = np.where(inside)[0]
     c0, A0, pred, ppm = pr.start, pr.A, pr.xy, pr.px_per_mm
     s0, init_err, sign, max_shift = pr.s0, pr.init_err, pr.sign, pr.max_shift
@@ -130,6 +135,14 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
         if _fits_better(f1, fine, pr.film[idx]):
             fine, s0 = f1, s1
             pr.s0 = s1  # the blur later refits and rescues start from
+    if scene == "auto" and not fine.scene_tv and _scene_disturbs(fine, pr.film[idx]):
+        # the crosses disagree with each other far more than their fits say: scene content
+        # the opening's estimate leaves under them; the joint scene kept where it fits better
+        f1 = measure(scan, shape, c0[idx], A0[idx], s0, init_err, sign, rules,
+                     anchor=pred[idx], max_shift=max_shift, scene_tv=JOINT_PASSES,
+                     contrast=True, gain_ref="set")
+        if _fits_better(f1, fine, pr.film[idx]):
+            fine = _keep_opening(f1, fine, pr.film[idx])
     tv = fine.scene_tv
     shape_from_neighbours(scan, shape, pr.film[idx], c0[idx], pred[idx], fine, s0, init_err,
                           sign, rules, max_shift, ppm, scene_tv=tv, A0=A0[idx])
@@ -160,6 +173,13 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
                        cov_white=cov_w, score=score, cnr=cnr, status=status, reason=reason)
 
 
+#: ``scene="auto"`` refits with the joint scene where the crosses' departures from their
+#: neighbours exceed their own precision this many times (rms per axis, :func:`_scene_disturbs`;
+#: scans of a flat or smooth scene 0.7-1.3, a strong texture under thin lines 1.7-4)
+SCENE_DISTURBED = 1.5
+#: a cross the opening refused and the joint scene's refit puts this many times the crosses'
+#: median departure off its neighbours' prediction is refused (:func:`_keep_opening`)
+SCENE_OFF = 3.0
 #: faint crosses (:func:`softplot.marks.measure.faint`) are measured only with at least this
 #: many crosses measured in all: a faint fit is weaker evidence than one that passes the
 #: per-pixel tests, and a few of them on a busy scene's corners (4 fit a projective grid of
@@ -431,6 +451,43 @@ def neighbours_place(film: np.ndarray, xy: np.ndarray) -> np.ndarray:
     Hm = grid.projective_fit(film, xy)
     at = grid.apply_h(Hm, film)
     return at + local_prediction(film, xy - at)
+
+
+def _scene_disturbs(fine: Fine, film: np.ndarray) -> bool:
+    """Do the accepted crosses (``film`` (M, 2) mm) depart from their neighbours' prediction
+    (:func:`neighbours_place`) more than :data:`SCENE_DISTURBED` times their own precision
+    (rms per axis: the median square departure, px^2, against twice the median variance of
+    the independent-pixel covariance)?
+    A textured scene the opening's estimate does not follow under thin, blurred lines moves
+    the fits so, while their own precision, for flat noise, does not show it."""
+    ok = fine.ok & np.isfinite(fine.xy).all(1)
+    if ok.sum() < 16:
+        return False
+    d = fine.xy[ok] - neighbours_place(film[ok], fine.xy[ok])
+    dep = float(np.median(np.sum(np.square(d), 1)))
+    var = float(np.median(np.square(fine.sigma[ok])))
+    return dep > 2.0 * SCENE_DISTURBED**2 * var
+
+
+def _keep_opening(f1: Fine, f0: Fine, film: np.ndarray) -> Fine:
+    """The joint scene's fits ``f1`` of the crosses (``film`` (M, 2) mm), with the opening's
+    ``f0`` kept where the joint pass refused a cross the opening accepted; a cross the
+    opening refused and the joint pass moved off its neighbours (departure from their
+    leave-one-out prediction, :func:`neighbours_place`, beyond :data:`SCENE_OFF` times the
+    joint fits' median: a scene edge beside a thin bar taken for the bar) is refused, and
+    the later refits from the neighbours' shape measure it again."""
+    keep = f0.ok & ~f1.ok
+    k0, k1 = np.where(keep)[0], np.where(~keep)[0]
+    out = _merge_fine(len(keep), [(k1, f1.rows(k1)), (k0, f0.rows(k0))])
+    if out.ok.sum() < 8:
+        return out
+    ok = np.where(out.ok)[0]
+    d = np.full(len(keep), np.nan)
+    d[ok] = np.hypot(*(out.xy[ok] - neighbours_place(film[ok], out.xy[ok])).T)
+    off = f1.ok & ~f0.ok & (np.nan_to_num(d) > SCENE_OFF * float(np.median(d[ok])))
+    for i in np.where(off)[0]:
+        out.ok[i], out.reason[i] = False, "moved away from its neighbours"
+    return out
 
 
 def _fits_better(f1: Fine, f0: Fine, film: np.ndarray) -> bool:

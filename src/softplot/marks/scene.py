@@ -4,7 +4,9 @@
 (:func:`softplot.marks.measure.scene_background`); ``"joint"`` refits every cross with the
 scene estimated jointly with it (:mod:`softplot.marks.scene_tv`, :data:`JOINT_PASSES` passes);
 ``"auto"`` (the default) the joint estimate where the first pass sees sharp scene edges at the
-crosses (:func:`busy_scene`).
+crosses (:func:`busy_scene`), or where its crosses depart from their neighbours far beyond
+their own precision and the joint estimate measures them better
+(:func:`softplot.marks.measurement.measure_crosses`).
 """
 
 from __future__ import annotations
