@@ -30,7 +30,8 @@ def _table(rows: list[dict]) -> str:
 
     head = ("| scans | n | must give a result | gave one | visible | measured | wrong row/col "
             "| claims on invisible | more than 1 px off | median error px | RMS px | "
-            "normalised-error RMS |\n|---|---|---|---|---|---|---|---|---|---|---|---|")
+            "normalised-error RMS | one-armed: n, normalised error across, along |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     out = [head]
     groups = [("all", rows)] + [(c, [r for r in rows if r["camera"] == c])
                                 for c in sorted({r["camera"] for r in rows})]
@@ -39,7 +40,8 @@ def _table(rows: list[dict]) -> str:
         out.append(f"| {name} | {s['n']} | {s['expected']} | {s['results_expected']} | "
                    f"{s['visible']} | {100 * s['measured']:.2f} % | {s['wrong']} | "
                    f"{s['claimed']} | {s['gross']} | {s['median_px']:.3f} | "
-                   f"{s['rms_px']:.3f} | {s['z']:.2f} |")
+                   f"{s['rms_px']:.3f} | {s['z']:.2f} | {s['lone']}, {s['z_across']:.2f}, "
+                   f"{s['z_along']:.2f} |")
     refused = [r for r in rows if r["expected"] and not r["result"]]
     if refused:
         out.append("")

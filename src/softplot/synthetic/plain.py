@@ -346,12 +346,16 @@ def score_plain(case: PlainCase, det) -> dict:
     ``claimed`` (a measured cross whose truth is ``dark`` or ``outside``), ``gross`` (more
     than 1 px off its truth), the errors (px) of the measured visible two-armed crosses and
     their squared normalised errors per coordinate (``z2``: ``d' C^-1 d / 2`` with ``C`` the
-    reported covariance; mean 1 when the covariance is honest).
+    reported covariance; mean 1 when the covariance is honest), and of the measured visible
+    one-armed crosses the normalised errors across and along the bar (``z_lone``: pairs, the
+    error along ``C``'s eigenvectors over the root of its eigenvalues: the smaller one is
+    across the bar).
     """
     tm = {m["name"]: m for m in case.truth["marks"]}
     q = 0.25 * case.truth["pitch_px"]
     out = {"visible": sum(m["state"] == "visible" for m in tm.values()), "measured": 0,
-           "wrong": [], "claimed": [], "gross": [], "errors": [], "missed": [], "z2": []}
+           "wrong": [], "claimed": [], "gross": [], "errors": [], "missed": [], "z2": [],
+           "z_lone": []}
     got = set()
     for i, n in enumerate(det.name):
         if det.kind[i] != "reseau" or det.status[i] != "measured" or n not in tm:
@@ -370,11 +374,15 @@ def score_plain(case: PlainCase, det) -> dict:
         out["measured"] += 1
         if e > 1.0:
             out["gross"].append(f"{n} {e:.2f} px")
+        if det.cov is None or not np.all(np.isfinite(det.cov[i])):
+            continue
+        d = det.xy[i] - (t["x"], t["y"])
         if t["arms"] == 2:
             out["errors"].append(e)
-            if det.cov is not None and np.all(np.isfinite(det.cov[i])):
-                d = det.xy[i] - (t["x"], t["y"])
-                out["z2"].append(float(d @ np.linalg.solve(det.cov[i], d)) / 2.0)
+            out["z2"].append(float(d @ np.linalg.solve(det.cov[i], d)) / 2.0)
+        else:
+            w, V = np.linalg.eigh(det.cov[i])
+            out["z_lone"].append([float(z) for z in (V.T @ d) / np.sqrt(np.maximum(w, 1e-30))])
     out["missed"] = [n for n, t in tm.items() if t["state"] == "visible" and n not in got]
     return out
 
@@ -420,8 +428,11 @@ def summarise(rows: list[dict]) -> dict:
     (``expected``) and those that did (``results``); visible crosses in the results and the
     share ``measured``; ``wrong``, ``claimed``, ``gross`` counts; the median and RMS error
     (px) and the RMS normalised error (``z``, 1 when the covariances are honest) of the
-    measured two-armed crosses."""
+    measured two-armed crosses; of the one-armed ones the count ``lone`` and the RMS
+    normalised errors across (``z_across``) and along (``z_along``) the bar."""
     res = [r for r in rows if r["result"]]
+    zl = [z for r in res for z in r.get("z_lone", [])]
+    zl = np.asarray(zl, float).reshape(-1, 2)
     err = np.concatenate([np.asarray(r["errors"], float) for r in res]) if res else np.zeros(0)
     z2 = np.concatenate([np.asarray(r["z2"], float) for r in res]) if res else np.zeros(0)
     vis = sum(r["visible"] for r in res)
@@ -434,4 +445,7 @@ def summarise(rows: list[dict]) -> dict:
             "gross": sum(len(r["gross"]) for r in res),
             "median_px": float(np.median(err)) if len(err) else float("nan"),
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
-            "z": float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")}
+            "z": float(np.sqrt(np.mean(z2))) if len(z2) else float("nan"),
+            "lone": len(zl),
+            "z_across": float(np.sqrt(np.mean(zl[:, 0] ** 2))) if len(zl) else float("nan"),
+            "z_along": float(np.sqrt(np.mean(zl[:, 1] ** 2))) if len(zl) else float("nan")}
