@@ -35,7 +35,7 @@ def _truth(deform: float, persp: float = 1.0):
 def _detection(seed, deform, reported="honest", persp=1.0):
     """A detection dict of the certificate's crosses: 12 of them measured across one bar
     only. ``reported``: "honest" (the covariance a detector reports: across within +-30 %,
-    along at the detector's floor of 0.5 px), "truth" (the covariances the errors were drawn
+    along 0.5 px, a lone bar's prediction), "truth" (the covariances the errors were drawn
     from) or "none" (no covariance: every mark alike)."""
     cam = load_camera(CAM)
     R = cam.reseau
