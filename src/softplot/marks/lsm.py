@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softplot.marks import kernels
+from softplot.marks import jpegq, kernels
 from softplot.marks.template import MarkShape, aperture
 
 __all__ = ["LSMResult", "lsm", "support_mask", "patch_frame", "PARAMS"]
@@ -742,6 +742,7 @@ def lsm(
     clip: tuple[float, float] | None = None,
     fit_blur: bool = True,
     correlated: bool = True,
+    quant: np.ndarray | None = None,
 ) -> LSMResult:
     """Fit the analytic mark model to N patches at once.
 
@@ -797,6 +798,11 @@ def lsm(
     correlated : bool
         The centre's covariance allows for residuals correlated between neighbouring pixels
         (:func:`_correlated_cov`); False: ``s0^2 N^-1`` (independent pixels).
+    quant : (8, 8) float, optional
+        The variances (grey units squared) of the scan's JPEG quantisation errors of its block
+        DCT coefficients (:func:`softplot.marks.jpegq.of_scan`; blocks on the pixel system's
+        8 x 8 grid): what they add to the centre's covariance is added to ``cov``
+        (:func:`softplot.marks.jpegq.centre_term`; not to ``cov_white``).
 
     Returns
     -------
@@ -868,6 +874,10 @@ def lsm(
         good = ((cc[:, 0, 0] > 0) & (det > 0) & np.all(np.isfinite(cc.reshape(n, 4)), 1)
                 & (cc[:, 0, 0] + cc[:, 1, 1] >= tr0))
         cov = np.where(good[:, None, None], cc, cov)
+    if quant is not None:
+        g = last["h"] * np.sqrt(np.maximum(last["w"], 0.0))[:, None, :]
+        add = jpegq.centre_term(g, X + ref[:, 0:1], Y + ref[:, 1:2], valid, quant)
+        cov = cov + np.where(np.isfinite(add), add, 0.0)
 
     # correlation of the data with the fitted mark, the fitted background removed from both
     B = (p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y + p[:, 11:12] * data[6]).astype(

@@ -11,8 +11,8 @@ from dataclasses import dataclass, fields
 import cv2
 import numpy as np
 
+from softplot.marks import jpegq, scene_tv
 from softplot.marks import kernels as _kernels
-from softplot.marks import scene_tv
 from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
 from softplot.marks.common import median_rows
@@ -327,9 +327,10 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     cross = scene and shape.kind == "cross" and bool(whole.any())
     top = _footprint_gradient(grad, origin, c0, A0, shape, s0) if cross and edges else None
     del grad  # not held through LSM (the fine stage's peak memory)
+    quant = jpegq.of_scan(scan)
     res = first if first is not None else _lsm(
         stack, origin, c0, A0, shape, bg, wt, s0=s0, init_err=init_err, fit_shape=fit_shape,
-        clip=(0.0, 1.0), fit_blur=fit_blur)
+        clip=(0.0, 1.0), fit_blur=fit_blur, quant=quant)
     edge = np.full(len(c0), np.nan)
     if cross:
         if top is not None:
@@ -341,7 +342,7 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
             sel = tv_select if whole.all() else whole & (True if tv_select is None
                                                          else np.asarray(tv_select, bool))
             res = _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, scene_tv, sign,
-                               rules or AcceptRules(), fit_blur, sel, groups)
+                               rules or AcceptRules(), fit_blur, sel, groups, quant)
     if keep is not None and res.part_gain is not None and res.part_gain.shape[1] == 4:
         # the half-arm left out has no say: not in the support count, not in the one-bar
         # test (its pixels were read at zero weight; an absent bar's half there looked half
@@ -432,7 +433,7 @@ def _lsm(stack, origin, c0, A0, shape, bg, wt, **kw) -> LSMResult:
 
 
 def _refit_pass(stack, origin, res, X, idx, sm, noise_set, keep, shape, fit_shape, fit_blur,
-                p):
+                p, quant=None):
     """Pass ``p`` of :func:`_refit_scene` for the marks ``idx`` that share the blur ``sm``
     (px): the scene under each held cross solved from ``X`` (the last solution, (N, h, w)
     pixel system), its gradient's prior pixel weights, and LSM from the last fit ``res``.
@@ -455,7 +456,8 @@ def _refit_pass(stack, origin, res, X, idx, sm, noise_set, keep, shape, fit_shap
         # where a later refit is not taken (rare: that cross keeps an independent-pixel one)
         new = lsm(g, origin[k], res.centre[k], A, shape, s0=sm, init_err=0.3,
                   fit_shape=fit_shape, background=B, weight=wt, sat_bg=_saturated(B),
-                  clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1)
+                  clip=(0.0, 1.0), fit_blur=fit_blur, correlated=p >= REFIT_ALL_PASSES - 1,
+                  quant=quant if p >= REFIT_ALL_PASSES - 1 else None)
         return new, Xk
 
     parts = _halves(idx)
@@ -466,7 +468,7 @@ def _refit_pass(stack, origin, res, X, idx, sm, noise_set, keep, shape, fit_shap
 
 
 def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, rules,
-                 fit_blur=True, select=None, groups=None):
+                 fit_blur=True, select=None, groups=None, quant=None):
     """LSM again with the scene under each fitted cross estimated jointly with it.
 
     ``passes`` times: the cross of the last fit (its blurred template ``T`` and its fitted grey
@@ -486,6 +488,8 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
     marks are refitted (the TV weight and blur still from the whole set). ``groups`` (N int,
     optional): independent sets of marks, each refitted as by a call of its own (its own TV
     weight, blur and passes; one solve and one LSM fit for all sets that share the blur).
+    ``quant``: the scan's JPEG quantisation variances for LSM's covariance
+    (:func:`softplot.marks.jpegq.of_scan`).
     Patches in the pixel system (``origin`` their [0, 0] pixels).
     """
     n = len(res.centre)
@@ -527,7 +531,7 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
         for sm in np.unique(s_med[ok]):  # the sets that share a blur: one solve and fit
             idx = np.where(ok & (s_med == sm))[0]
             new, X[idx] = _refit_pass(stack, origin, res, X, idx, float(sm), noise_set, keep,
-                                      shape, fit_shape, fit_blur, p)
+                                      shape, fit_shape, fit_blur, p, quant)
             move = np.hypot(*(new.centre - res.centre[idx]).T)
             take = (np.all(np.isfinite(new.centre), 1) & (np.sign(new.gain) == sign)
                     & (move <= REFIT_MAX_MOVE))
@@ -1058,7 +1062,7 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
         st = np.where(keep, stack, np.nan).astype(np.float32)
         res = lsm(st, origin, c0, A0, shape, s0=s_fit, init_err=0.5, fit_shape=False,
                   background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0),
-                  fit_blur=blur is None, arm_check=False)
+                  fit_blur=blur is None, arm_check=False, quant=jpegq.of_scan(scan))
         parts = (0, 2) if axis == 0 else (1, 3)
         ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.gain)
         ok &= np.sign(res.gain) == sign
