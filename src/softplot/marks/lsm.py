@@ -96,6 +96,11 @@ class LSMResult:
         contrast summed over all its pixels (the fitted background removed, the norm over
         the fit's pixels, grey units over grey units). Unlike :attr:`cnr` (per pixel) it
         grows with the mark's length and width: the evidence a thin, faint mark gives.
+    cov_jpeg : (N, 2, 2) float
+        What the scan's JPEG quantisation adds to ``cov`` (px^2; zeros without ``quant``,
+        :func:`softplot.marks.jpegq.centre_term`), kept apart: the acceptance and outlier
+        tests do not see it, the reported covariance has it
+        (:func:`softplot.marks.validation.validate`).
     """
 
     centre: np.ndarray
@@ -115,6 +120,7 @@ class LSMResult:
     cov_white: np.ndarray | None = None
     part_gain: np.ndarray | None = None
     snr: np.ndarray | None = None
+    cov_jpeg: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -801,8 +807,8 @@ def lsm(
     quant : (8, 8) float, optional
         The variances (grey units squared) of the scan's JPEG quantisation errors of its block
         DCT coefficients (:func:`softplot.marks.jpegq.of_scan`; blocks on the pixel system's
-        8 x 8 grid): what they add to the centre's covariance is added to ``cov``
-        (:func:`softplot.marks.jpegq.centre_term`; not to ``cov_white``).
+        8 x 8 grid): what they add to the centre's covariance is ``cov_jpeg``
+        (:func:`softplot.marks.jpegq.centre_term`).
 
     Returns
     -------
@@ -874,10 +880,11 @@ def lsm(
         good = ((cc[:, 0, 0] > 0) & (det > 0) & np.all(np.isfinite(cc.reshape(n, 4)), 1)
                 & (cc[:, 0, 0] + cc[:, 1, 1] >= tr0))
         cov = np.where(good[:, None, None], cc, cov)
+    cov_jpeg = np.zeros((n, 2, 2))
     if quant is not None:
         g = last["h"] * np.sqrt(np.maximum(last["w"], 0.0))[:, None, :]
         add = jpegq.centre_term(g, X + ref[:, 0:1], Y + ref[:, 1:2], valid, quant)
-        cov = cov + np.where(np.isfinite(add), add, 0.0)
+        cov_jpeg = np.where(np.isfinite(add), add, 0.0)
 
     # correlation of the data with the fitted mark, the fitted background removed from both
     B = (p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y + p[:, 11:12] * data[6]).astype(
@@ -926,4 +933,5 @@ def lsm(
         cov_white=cov_white,
         part_gain=part_gain,
         snr=np.sqrt((dM.astype(float) ** 2).sum(1)) / noise,
+        cov_jpeg=cov_jpeg,
     )

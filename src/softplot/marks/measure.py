@@ -137,6 +137,9 @@ class Fine:
     cov_white: np.ndarray | None = None
     #: the fitted contrast (mark minus background, grey units; NaN where not fitted)
     gain: np.ndarray | None = None
+    #: what the scan's JPEG quantisation adds to ``cov`` (px^2, not in it:
+    #: :attr:`softplot.marks.lsm.LSMResult.cov_jpeg`)
+    cov_jpeg: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -853,7 +856,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     if n == 0:
         z = np.zeros(0)
         return Fine(np.zeros((0, 2)), np.zeros((0, 2, 2)), z, z, np.zeros(0, bool), [], None,
-                    np.zeros((0, 2, 2)), z, cov_white=np.zeros((0, 2, 2)))
+                    np.zeros((0, 2, 2)), z, cov_white=np.zeros((0, 2, 2)),
+                    cov_jpeg=np.zeros((0, 2, 2)))
     if anchor is None:
         anchor, max_shift = c0, rules.max_shift_factor * init_err + 1.0
     anchor = np.asarray(anchor, float).reshape(-1, 2)
@@ -876,6 +880,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     xy = np.full((n, 2), np.nan)
     cov = np.full((n, 2, 2), np.nan)
     cov_w = np.full((n, 2, 2), np.nan)
+    cov_j = np.zeros((n, 2, 2))
     score = np.full(n, np.nan)
     cnr = np.full(n, np.nan)
     ok = np.zeros(n, bool)
@@ -954,7 +959,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 xy[i], cov[i], Afit[i] = res.centre[j], res.cov[j], res.A[j]
                 score[i], cnr[i], ok[i], reason[i] = res.score[j], res.cnr[j], good[j], why[j]
                 s_fit[i], gain[i] = res.s[j], res.gain[j]
-                cov_w[i] = res.cov_white[j]
+                cov_w[i], cov_j[i] = res.cov_white[j], res.cov_jpeg[j]
             if not good[j]:
                 retry.append(i)
         if p_i == 0 and retry:
@@ -971,7 +976,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 s0, fit_blur = held, False
     arms = np.where(ok, 2, 0) if shape.kind == "cross" else None
     return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms,
-                cov_w, gain)
+                cov_w, gain, cov_j)
 
 
 def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.ndarray:
@@ -1062,7 +1067,7 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
         st = np.where(keep, stack, np.nan).astype(np.float32)
         res = lsm(st, origin, c0, A0, shape, s0=s_fit, init_err=0.5, fit_shape=False,
                   background=bg, weight=wt, sat_bg=_saturated(bg), clip=(0.0, 1.0),
-                  fit_blur=blur is None, arm_check=False, quant=jpegq.of_scan(scan))
+                  fit_blur=blur is None, arm_check=False)
         parts = (0, 2) if axis == 0 else (1, 3)
         ok = np.all(np.isfinite(res.centre), 1) & np.isfinite(res.gain)
         ok &= np.sign(res.gain) == sign

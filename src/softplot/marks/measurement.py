@@ -315,6 +315,8 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
         if f2.ok[j]:
             fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
             fine.cov_white[i] = f2.cov_white[j]
+            if fine.cov_jpeg is not None and f2.cov_jpeg is not None:
+                fine.cov_jpeg[i] = f2.cov_jpeg[j]
             fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
                 f2.score[j], f2.cnr[j], True, "")
             if fine.gain is not None and f2.gain is not None:
@@ -383,7 +385,7 @@ def _take(fine: Fine, i: int, f2: Fine, j: int) -> None:
     fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = f2.score[j], f2.cnr[j], True, ""
     if fine.s is not None and f2.s is not None:
         fine.s[i] = f2.s[j]
-    for extra in ("cov_white", "arms", "gain"):
+    for extra in ("cov_white", "arms", "gain", "cov_jpeg"):
         a, b = getattr(fine, extra, None), getattr(f2, extra, None)
         if a is not None and b is not None:
             a[i] = b[j]

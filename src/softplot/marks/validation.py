@@ -163,11 +163,34 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
+    vrep = vfac
+    cj = jpeg_share(m, two)
+    if cj is not None:  # the reported covariances with the JPEG quantisation's share
+        cov_q = cov + cj
+        vrep = variance_factor(film[two], residual[two], cov_q[two], local_prediction, ppm,
+                               H=Hm)
+        m.cov = np.where(two[:, None, None], cov_q * vrep, m.cov)
     # crosses the scan's edge cuts by one tip: measured last, so that they feed no model
     got = edge_crosses(scan, pr, m, arms, Hm, vfac, floor_px, dep, rules)
     residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
-                      variance_factor=vfac)
+                      variance_factor=vrep)
+
+
+def jpeg_share(m: Measurement, two: np.ndarray) -> np.ndarray | None:
+    """What the scan's JPEG quantisation adds to the covariance (N, 2, 2) px^2 of each
+    two-armed cross ``two`` (N bool) whose reported fit is its first measurement's
+    (:attr:`softplot.marks.measure.Fine.cov_jpeg`; 0 elsewhere), or None where there is none
+    (a scan that was no JPEG). Kept out of the acceptance and outlier tests, which were set
+    without it."""
+    fine = m.fine
+    if fine is None or getattr(fine, "cov_jpeg", None) is None:
+        return None
+    idx = np.asarray(m.fitted)
+    cj = np.zeros((len(m.xy), 2, 2))
+    same = two[idx] & np.all(fine.xy == m.xy[idx], 1)  # not replaced by a later fit
+    cj[idx[same]] = fine.cov_jpeg[same]
+    return cj if np.any(cj != 0.0) else None
 
 
 #: film mm: a fiducial farther than this from the pattern's model is an outlier
