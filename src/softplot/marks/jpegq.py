@@ -164,36 +164,68 @@ def of_scan(scan) -> np.ndarray | None:
 
 
 def centre_term(g: np.ndarray, X: np.ndarray, Y: np.ndarray, valid: np.ndarray,
-                var: np.ndarray) -> np.ndarray:
+                var: np.ndarray, image: np.ndarray | None = None,
+                origin: np.ndarray | None = None) -> np.ndarray:
     """The quantisation's covariance of each mark's centre (N, 2, 2) px^2.
 
     ``g`` (N, 2, P): the centre's sensitivity to each pixel's grey value (``h sqrt(w)``,
     px per grey unit); ``X``, ``Y`` (N, P): the pixels' integer positions in the pixel system
     (the JPEG block grid starts at 0); ``valid`` (N, P); ``var`` (8, 8): the coefficients'
-    quantisation variances (grey units squared, :func:`of_scan`)."""
+    quantisation variances (grey units squared, :func:`of_scan`). With ``image`` (N, h, w),
+    an estimate of the scan before the compression around each mark (the fitted model over
+    the mark, grey units) whose element [0, 0] is the pixel ``origin`` (N, 2) (x, y), a
+    coefficient smaller than half its step (JPEG's dead zone: stored as 0, its error is the
+    coefficient itself) contributes its own square instead; blocks not whole in ``image``
+    keep ``var``."""
     n, _, P = g.shape
-    if n == 0:
-        return np.zeros((0, 2, 2))
+    valid = valid & np.isfinite(X) & np.isfinite(Y)
+    if n == 0 or not valid.any():
+        return np.zeros((n, 2, 2))
     ix = np.rint(X).astype(np.int64)
     iy = np.rint(Y).astype(np.int64)
-    valid = valid & np.isfinite(X) & np.isfinite(Y)
-    if not valid.any():
-        return np.zeros((n, 2, 2))
     mark = np.broadcast_to(np.arange(n)[:, None], valid.shape)[valid]
     bx, by, j = ix[valid] // 8, iy[valid] // 8, (iy[valid] % 8) * 8 + ix[valid] % 8
     # the blocks the marks' pixels fall in, numbered (the marks' patches may overlap)
-    by, bx = by - by.min(), bx - bx.min()
-    nby, nbx = int(by.max()) + 1, int(bx.max()) + 1
-    blocks, inv = np.unique((mark * nby + by) * nbx + bx, return_inverse=True)
+    bx0, by0 = bx.min(), by.min()
+    nby, nbx = int(by.max() - by0) + 1, int(bx.max() - bx0) + 1
+    blocks, inv = np.unique((mark * nby + by - by0) * nbx + bx - bx0, return_inverse=True)
     nb = len(blocks)
     idx = inv.ravel() * 64 + j
     G = np.stack([np.bincount(idx, g[:, a][valid].astype(float), nb * 64) for a in (0, 1)],
                  1).reshape(nb, 8, 8, 2).transpose(0, 3, 1, 2)  # (block, axis, row, col)
     D = dct_matrix()
     A = (D @ G @ D.T).reshape(nb, 2, 64)  # the centre's influence on each coefficient
-    Av = A * np.asarray(var, float).ravel()
+    V = np.broadcast_to(np.asarray(var, float).ravel(), (nb, 64))
+    bm = blocks // (nby * nbx)
+    if image is not None:
+        V = _dead_zone(V, image, origin, bm, (blocks // nbx) % nby + by0, blocks % nbx + bx0,
+                       D)
+    Av = A * V[:, None, :]
     out = np.zeros((n, 2, 2))
     for a in (0, 1):
         for c in (0, 1):
-            out[:, a, c] = np.bincount(blocks // (nby * nbx), (Av[:, a] * A[:, c]).sum(1), n)
+            out[:, a, c] = np.bincount(bm, (Av[:, a] * A[:, c]).sum(1), n)
     return out
+
+
+def _dead_zone(V, image, origin, bm, by, bx, D):
+    """The variances ``V`` (blocks, 64) of the blocks (mark ``bm``, block row ``by`` and
+    column ``bx`` of the pixel system's grid) with JPEG's dead zone: ``c^2`` where
+    ``|c| < q / 2`` (``q^2 = 12 var``), ``c`` the block's coefficients in ``image`` (see
+    :func:`centre_term`)."""
+    n, h, w = image.shape
+    o = np.rint(np.asarray(origin, float)).astype(np.int64).reshape(n, 2)
+    x0 = bx * 8 - o[bm, 0]
+    y0 = by * 8 - o[bm, 1]
+    whole = (x0 >= 0) & (y0 >= 0) & (x0 + 8 <= w) & (y0 + 8 <= h)
+    if not whole.any():
+        return V
+    k = np.arange(8)
+    rows = y0[whole, None, None] + k[None, :, None]
+    cols = x0[whole, None, None] + k[None, None, :]
+    blk = np.asarray(image, float)[bm[whole, None, None], rows, cols]  # (B, 8, 8)
+    c2 = ((D @ blk @ D.T).reshape(-1, 64)) ** 2
+    V = np.array(V)
+    # stored as 0 where below half the step (|c| < q / 2, i.e. c^2 < 3 var): error -c
+    V[whole] = np.where(np.isfinite(c2) & (c2 < 3.0 * V[whole]), c2, V[whole])
+    return V

@@ -728,6 +728,20 @@ def _refit_dropped(p, data, shape, full, act, todo, last, converged, max_iter, t
             prior=(int(free[0]), held, TILT_PRIOR))
 
 
+def _model_patches(patches, origin, ref, X, Y, valid, M):
+    """The patches (N, h, w) with the fitted model ``M`` (N, P) in place of the data at the
+    fit's pixels (``X``, ``Y`` relative to ``ref``, pixel system): an estimate of the scan
+    before its JPEG compression over the marks."""
+    n, h, w = patches.shape
+    out = np.array(patches, np.float32)
+    col = np.rint(X + (ref[:, 0:1] - origin[:, 0:1])).astype(np.int64)
+    row = np.rint(Y + (ref[:, 1:2] - origin[:, 1:2])).astype(np.int64)
+    ok = valid & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    mark = np.broadcast_to(np.arange(n)[:, None], ok.shape)
+    out[mark[ok], row[ok], col[ok]] = M[ok]
+    return out
+
+
 def lsm(
     patches: np.ndarray,
     origin: np.ndarray,
@@ -883,7 +897,8 @@ def lsm(
     cov_jpeg = np.zeros((n, 2, 2))
     if quant is not None:
         g = last["h"] * np.sqrt(np.maximum(last["w"], 0.0))[:, None, :]
-        add = jpegq.centre_term(g, X + ref[:, 0:1], Y + ref[:, 1:2], valid, quant)
+        add = jpegq.centre_term(g, X + ref[:, 0:1], Y + ref[:, 1:2], valid, quant,
+                                _model_patches(patches, origin, ref, X, Y, valid, M), origin)
         cov_jpeg = np.where(np.isfinite(add), add, 0.0)
 
     # correlation of the data with the fitted mark, the fitted background removed from both
