@@ -16,7 +16,15 @@ taken up by the fitted shift and leaves no residual, so the mark's reported cova
 it. The centre is linear in the pixel errors (``dc = Sum_i h_i sqrt(w_i) e_i``,
 :func:`softplot.marks.lsm._correlated_cov`), so the quantisation adds
 ``Sum_blocks a_b diag(var_k) a_b^T`` with ``a_b`` the centre's influence on the block's DCT
-coefficients (:func:`centre_term`).
+coefficients (:func:`centre_term`). A coefficient smaller than half its step is stored as 0
+(the dead zone): its error is the coefficient itself, taken from the fitted mark. The term
+is kept apart from the covariance the acceptance and outlier tests see
+(:attr:`softplot.marks.lsm.LSMResult.cov_jpeg`) and added to the reported one before the
+scan's variance factor is taken (:func:`softplot.marks.validation.jpeg_share`).
+
+The estimate assumes the block grid starts at the scan's first row and column (a JPEG copy
+cropped afterwards by other than multiples of 8 px shows no periodicity there and gets no
+term) and IJG-scaled tables (an encoder's own tables are found only where they match one).
 """
 
 from __future__ import annotations

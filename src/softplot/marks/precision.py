@@ -5,7 +5,9 @@ Each cross's covariance from least-squares matching sees only what its residuals
 errors leave no trace there: the part of a structured disturbance that looks like a shift of
 the mark is absorbed by the fitted shift (JPEG's quantisation of the mark's own edges, a
 scene edge along an arm), and the residuals are orthogonal to it. On such scans the reported
-covariances are too small (normalised errors of 1.5-2.5 on web-size JPEG copies).
+covariances are too small (normalised errors of 1.5-2.5 on web-size JPEG copies). JPEG's
+share is estimated for each cross from the scan's quantisation (:mod:`softplot.marks.jpegq`)
+and added to its covariance before the factor is taken (the factor then sees what remains).
 
 The grid sees them. A smooth film deformation moves neighbouring crosses alike, so each
 cross's departure ``d_i`` from the leave-one-out local fit through its neighbours' positions
