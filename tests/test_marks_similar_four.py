@@ -44,11 +44,14 @@ def test_sweep_render_177_gives_its_real_crosses():
     """Sweep render 177 (Pentax 645, web copy of a busy colour negative, quarter turn): its
     lattice, grown from too few candidates, gave four crosses, one a scene feature 19 px off
     R2C0's place: refused before as too few to test. The three real ones are returned with
-    their row and col, the feature is refused."""
+    their row and col, the feature is never given as a cross (no measurement more than
+    max(1 px, 8 bounds) off its truth). Since a weak peak on a lattice node no longer counts
+    as a missed cross, the lattice holds more of the grid and 6 of the 9 visible crosses are
+    measured, R2C0 at its own place."""
     from softplot.synthetic.sweep import make_case, run_case
 
     sc, det = run_case(make_case(177))
     assert sc.result and not sc.wrong and not sc.claimed and not sc.gross, sc.error
     measured = [n for n, s in zip(det.name, det.status, strict=True) if s == "measured"]
-    assert measured == ["R0C0", "R0C1", "R0C2"], measured
-    assert det.status[det.name.index("R2C0")] == "rejected"
+    assert {"R0C0", "R0C1", "R0C2"} <= set(measured), measured
+    assert sc.measured == len(measured) >= 6, (sc.measured, measured)
