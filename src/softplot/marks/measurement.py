@@ -314,14 +314,8 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
         return
     for j, i in enumerate(redo):
         if f2.ok[j]:
-            fine.xy[i], fine.cov[i], fine.A[i], fine.s[i] = f2.xy[j], f2.cov[j], cons[i], f2.s[j]
-            fine.cov_white[i] = f2.cov_white[j]
-            if fine.cov_jpeg is not None and f2.cov_jpeg is not None:
-                fine.cov_jpeg[i] = f2.cov_jpeg[j]
-            fine.score[i], fine.cnr[i], fine.ok[i], fine.reason[i] = (
-                f2.score[j], f2.cnr[j], True, "")
-            if fine.gain is not None and f2.gain is not None:
-                fine.gain[i] = f2.gain[j]
+            _take(fine, i, f2, j)
+            fine.A[i] = cons[i]  # the affine held in the refit
 
 
 #: refits with the global model's affine are a grid when the median distance of their
