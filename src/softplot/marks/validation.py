@@ -39,12 +39,16 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
-           "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX", "EDGE_CUT_MAX"]
+           "REINSTATE_DEGREES", "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX",
+           "EDGE_CUT_MAX", "outlier_floor", "reinstate", "smooth_residuals", "global_model"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
 #: deformation better than a few micrometres there
 OUTLIER_FLOOR_MM = 0.0025
+#: the degrees of the global polynomial that judges a rejected outline cross again
+#: (:func:`reinstate`), the one its leave-one-out error prefers
+REINSTATE_DEGREES = (1, 2, 3, 4)
 #: inside the grid the local cubic follows a 100 um deformation to a few tenths of a
 #: micrometre (no false rejection in the sweep down to 0.02 px): floor max(px, film mm)
 OUTLIER_FLOOR_INNER = (0.05, 0.0005)
@@ -134,9 +138,7 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     xy, cov, cov_w, status, reason = m.xy, m.cov, m.cov_white, m.status, m.reason
     N, idx = len(film), m.fitted
     sigma = m.sigma()
-    floor_px = np.where(outline(film, np.array(status) == "measured"),
-                        max(0.1, OUTLIER_FLOOR_MM * ppm),
-                        max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
+    floor_px = outlier_floor(film, status, ppm)
     Hm, residual, rms, dep = reject_outliers(film, xy, status, reason, pr.H, sigma,
                                              floor_px=floor_px)
     # the affine of the accepted fits; a refused fit's ran wherever it went (a scale of 1.4
@@ -152,6 +154,8 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
+    if len(reinstate(film, xy, status, reason, floor_px)):
+        Hm, residual, rms = global_model(film, xy, status, Hm)
     arms = np.where(np.array(status) == "measured", 2, 0)
     # the errors the crosses' own fits cannot see, from their departures from each other
     # (of the two-armed crosses only: the lone bars below do not change it)
@@ -175,6 +179,15 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vrep)
+
+
+def outlier_floor(film, status, ppm) -> np.ndarray:
+    """The outlier test's floor (px, (M,)) of marks at ``film`` (M, 2) mm: on the outline of
+    the marks measured (``status``) max(0.1 px, :data:`OUTLIER_FLOOR_MM`), inside the grid
+    :data:`OUTLIER_FLOOR_INNER`; ``ppm`` px per film mm."""
+    return np.where(outline(film, np.array(status) == "measured"),
+                    max(0.1, OUTLIER_FLOOR_MM * ppm),
+                    max(OUTLIER_FLOOR_INNER[0], OUTLIER_FLOOR_INNER[1] * ppm))
 
 
 def jpeg_share(m: Measurement, two: np.ndarray) -> np.ndarray | None:
@@ -367,13 +380,72 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         worst = idx[int(np.argmax(np.where(bad, dev / thr, -1.0)))]
         status[worst] = "rejected"
         reason[worst] = "outlier against the global model and its neighbours"
+    Hm, residual, rms = global_model(film, xy, status, Hm)
+    return Hm, residual, rms, coef
+
+
+def global_model(film, xy, status, H0):
+    """The projective model film mm -> pixel of the measured marks (``H0`` with fewer than
+    4), their residuals (M, 2) px (pixel system; NaN where not measured) and rms (px)."""
     m = np.array([s == "measured" for s in status])
-    if m.sum() >= 4:
-        Hm = grid.projective_fit(film[m], xy[m])
+    Hm = grid.projective_fit(film[m], xy[m]) if m.sum() >= 4 else H0
     r = xy - grid.apply_h(Hm, film)
     residual = np.where(m[:, None], r, np.nan)
     rms = float(np.sqrt(np.mean(np.sum(r[m] ** 2, 1)))) if m.any() else float("nan")
-    return Hm, residual, rms, coef
+    return Hm, residual, rms
+
+
+def reinstate(film, xy, status, reason, floor_px) -> np.ndarray:
+    """Outline marks rejected as outliers (:func:`reject_outliers`) and not measured again
+    by the rescue, measured after all where a global polynomial of the measured marks'
+    residuals (:func:`smooth_residuals`) places them within ``floor_px`` (px, scalar or (M,),
+    the outlier test's floor): on a grid's outline the neighbours' local quadratic
+    extrapolates a smooth film deformation 0.2-0.4 px wrong at 900-1700 dpi (the robustness
+    sweep's correct outline crosses, 0.003-0.03 px off their truth, rejected), where the
+    whole grid's polynomial follows it. ``film`` (M, 2) mm, ``xy`` (M, 2) pixel system.
+    Modifies ``status`` and ``reason`` in place; returns the indices measured again."""
+    st = np.array(status)
+    meas = st == "measured"
+    cand = np.where((st == "rejected") & np.isfinite(xy).all(1)
+                    & np.array([r.startswith("outlier") for r in reason]))[0]
+    if len(cand) == 0 or meas.sum() < 8:
+        return cand[:0]
+    cand = cand[outline(film, meas)[cand]]
+    H = grid.projective_fit(film[meas], xy[meas])
+    pred = smooth_residuals(film[meas], xy[meas] - grid.apply_h(H, film[meas]), film[cand])
+    if pred is None:
+        return cand[:0]
+    dev = np.hypot(*(xy[cand] - grid.apply_h(H, film[cand]) - pred).T)
+    back = cand[dev <= np.broadcast_to(floor_px, (len(film),))[cand]]
+    for i in back:
+        status[i], reason[i] = "measured", ""
+    return back
+
+
+def smooth_residuals(film, r, at):
+    """The residuals ``r`` (M, 2) px of marks at ``film`` (M, 2) mm from a projective model,
+    evaluated at ``at`` (K, 2) mm by a global polynomial in film x, y of the degree of
+    :data:`REINSTATE_DEGREES` whose leave-one-out error is smallest (of those the marks
+    determine twice over); None when none is. Returns (K, 2) px."""
+    c0, sc = film.mean(0), max(float(np.ptp(film, 0).max()), 1e-9)
+
+    def basis(f, deg):
+        u = (np.asarray(f, float) - c0) / sc
+        return np.stack([u[:, 0] ** i * u[:, 1] ** j for i in range(deg + 1)
+                         for j in range(deg + 1 - i)], 1)
+
+    best = None
+    for deg in REINSTATE_DEGREES:
+        A = basis(film, deg)
+        if len(film) < 2 * A.shape[1]:
+            break
+        q, _ = np.linalg.qr(A)
+        lev = np.minimum((q**2).sum(1), 1 - 1e-9)
+        coef = np.linalg.lstsq(A, r, rcond=None)[0]
+        loo = float(np.mean(np.sum(((r - A @ coef) / (1 - lev)[:, None]) ** 2, 1)))
+        if best is None or loo < best[0]:
+            best = (loo, deg, coef)
+    return None if best is None else basis(at, best[1]) @ best[2]
 
 
 def extrapolation(film, sigma, edge, draws=16):
