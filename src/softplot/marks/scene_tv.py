@@ -388,8 +388,6 @@ def _kernel(g, T, m, B0, mu, k, iters, tau, sig, out, xout):  # pragma: no cover
                 xout[q, i, j] = X[i, j]
 
 
-
-
 @njit(fastmath=True, cache=True, nogil=True)
 def _blur_rows(src, dst, tmp, row, k, r, h, w, lo, hi, nlo, nhi):  # pragma: no cover - compiled
     # the separable blur of ``_blur`` at the band's pixels only: row i's columns [lo, hi);
