@@ -90,6 +90,24 @@ njit = kernels.njit
 
 
 @njit(fastmath=True, cache=True, nogil=True)
+def _vertical7(tmp, dst, k1, k2, k3, k4, k5, k6, k7, h, w):  # pragma: no cover - compiled
+    # the vertical pass of the 7-tap blurs (``_blur7``, ``_blur_p`` for r <= 3): rows of ``tmp`` to
+    # ``dst``, edges replicated
+    for i in range(h):
+        r1 = tmp[max(i - 3, 0)]
+        r2 = tmp[max(i - 2, 0)]
+        r3 = tmp[max(i - 1, 0)]
+        r4 = tmp[i]
+        r5 = tmp[min(i + 1, h - 1)]
+        r6 = tmp[min(i + 2, h - 1)]
+        r7 = tmp[min(i + 3, h - 1)]
+        d = dst[i]
+        for j in range(w):
+            d[j] = (k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j] + k5 * r5[j]
+                    + k6 * r6[j] + k7 * r7[j])
+
+
+@njit(fastmath=True, cache=True, nogil=True)
 def _vertical9(tmp, dst, k0, k1, k2, k3, k4, k5, k6, k7, k8, h, w):  # pragma: no cover - compiled
     # the vertical pass of the 9-tap blurs (``_blur``, ``_blur9_p``): rows of ``tmp`` to ``dst``,
     # edges replicated
@@ -168,18 +186,7 @@ def _blur7(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
         for j in range(w):
             d[j] = (k1 * row[j] + k2 * row[j + 1] + k3 * row[j + 2] + k4 * row[j + 3]
                     + k5 * row[j + 4] + k6 * row[j + 5] + k7 * row[j + 6])
-    for i in range(h):
-        r1 = tmp[max(i - 3, 0)]
-        r2 = tmp[max(i - 2, 0)]
-        r3 = tmp[max(i - 1, 0)]
-        r4 = tmp[i]
-        r5 = tmp[min(i + 1, h - 1)]
-        r6 = tmp[min(i + 2, h - 1)]
-        r7 = tmp[min(i + 3, h - 1)]
-        d = dst[i]
-        for j in range(w):
-            d[j] = (k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j] + k5 * r5[j]
-                    + k6 * r6[j] + k7 * r7[j])
+    _vertical7(tmp, dst, k1, k2, k3, k4, k5, k6, k7, h, w)
 
 
 @njit(fastmath=True, cache=True, nogil=True)
@@ -260,18 +267,7 @@ def _blur_p(src, dst, tmp, row, k, r, h, w):  # pragma: no cover - compiled
         for j in range(w):
             d[j] = (k1 * s[j] + k2 * s[j + 1] + k3 * s[j + 2] + k4 * s[j + 3]
                     + k5 * s[j + 4] + k6 * s[j + 5] + k7 * s[j + 6])
-    for i in range(h):
-        r1 = tmp[max(i - 3, 0)]
-        r2 = tmp[max(i - 2, 0)]
-        r3 = tmp[max(i - 1, 0)]
-        r4 = tmp[i]
-        r5 = tmp[min(i + 1, h - 1)]
-        r6 = tmp[min(i + 2, h - 1)]
-        r7 = tmp[min(i + 3, h - 1)]
-        d = dst[i]
-        for j in range(w):
-            d[j] = (k1 * r1[j] + k2 * r2[j] + k3 * r3[j] + k4 * r4[j] + k5 * r5[j]
-                    + k6 * r6[j] + k7 * r7[j])
+    _vertical7(tmp, dst, k1, k2, k3, k4, k5, k6, k7, h, w)
 
 
 @njit(fastmath=True, cache=True, nogil=True)
