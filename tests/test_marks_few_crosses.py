@@ -75,6 +75,25 @@ def test_two_cross_like_features_off_the_lattice_are_no_reseau(seed, dpi):
         detect(Scan.from_array(img, dpi=dpi), "rollei-6006")
 
 
+def test_the_global_affine_is_judged_without_the_neighbours_variance_factor():
+    """Where the neighbours predict no affine (two cross-like features: a fit too degenerate
+    for one), the shape test takes the global model's affine, the same prediction everywhere:
+    no position-dependent variance factor. The degenerate fit's (any sign, from a near-singular
+    normal matrix) made its scales invalid (a square root of a negative) and left fits out of
+    the test unseen; the scan is still refused in one line."""
+    import warnings
+
+    from softplot.io import Scan
+    from softplot.marks import DetectionError, detect
+    from softplot.synthetic import ScanSpec, render_scan
+
+    img, _ = render_scan("rollei-6006", ScanSpec(dpi=700, scene="busy"), 2, marks=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(DetectionError, match="no reseau found"):
+            detect(Scan.from_array(img, dpi=700), "rollei-6006")
+
+
 def test_crosses_crowded_out_of_the_candidates_are_found_at_the_lattice_nodes():
     """A Hasselblad quarter frame (5 x 5, 3 x 3 of its crosses in the scan) over a busy scene
     at 2396 dpi, short arms: the scene's peaks crowd four of the nine crosses out of the

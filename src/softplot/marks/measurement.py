@@ -265,7 +265,11 @@ def shape_from_neighbours(sc, shape, film, c0, pred, fine, s0, init_err, sign, r
     # 40 % and 20 degrees): the global model's affine, and the refits judged as a grid
     few = A0 is not None and not np.isfinite(cons).all((1, 2)).any()
     if few:
+        # the global model's affine, the same prediction everywhere: no position-dependent
+        # variance factor (the neighbours' ``lev`` of a fit too degenerate for an affine is
+        # not one: a near-singular normal matrix makes it any sign)
         cons = np.array(A0, float)
+        lev = np.ones(len(film))
     have = np.isfinite(cons).all((1, 2))
     fin = have & np.isfinite(fine.A).all((1, 2))
     ref = fin & fine.ok
