@@ -35,10 +35,10 @@ def _test(film, xy):
     """The outlier test, then the reinstatement: (rejected, reinstated) indices."""
     status, reason = ["measured"] * len(film), [""] * len(film)
     floor = outlier_floor(film, status, DPI / 25.4)
-    reject_outliers(film, xy, status, reason, np.eye(3), np.full(len(film), SIGMA),
-                    floor_px=floor)
+    Hm = reject_outliers(film, xy, status, reason, np.eye(3), np.full(len(film), SIGMA),
+                         floor_px=floor)[0]
     rejected = [i for i, s in enumerate(status) if s == "rejected"]
-    back = reinstate(film, xy, status, reason, floor)
+    back = reinstate(film, xy, status, reason, floor, Hm)
     assert all(status[i] == "measured" and reason[i] == "" for i in back)
     assert all(status[i] == "rejected" for i in set(rejected) - set(back.tolist()))
     return rejected, back

@@ -154,7 +154,7 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
-    if len(reinstate(film, xy, status, reason, floor_px)):
+    if len(reinstate(film, xy, status, reason, floor_px, Hm)):
         Hm, residual, rms = global_model(film, xy, status, Hm)
     arms = np.where(np.array(status) == "measured", 2, 0)
     # the errors the crosses' own fits cannot see, from their departures from each other
@@ -395,14 +395,16 @@ def global_model(film, xy, status, H0):
     return Hm, residual, rms
 
 
-def reinstate(film, xy, status, reason, floor_px) -> np.ndarray:
+def reinstate(film, xy, status, reason, floor_px, H) -> np.ndarray:
     """Outline marks rejected as outliers (:func:`reject_outliers`) and not measured again
     by the rescue, measured after all where a global polynomial of the measured marks'
     residuals (:func:`smooth_residuals`) places them within ``floor_px`` (px, scalar or (M,),
     the outlier test's floor): on a grid's outline the neighbours' local quadratic
     extrapolates a smooth film deformation 0.2-0.4 px wrong at 900-1700 dpi (the robustness
     sweep's correct outline crosses, 0.003-0.03 px off their truth, rejected), where the
-    whole grid's polynomial follows it. ``film`` (M, 2) mm, ``xy`` (M, 2) pixel system.
+    whole grid's polynomial follows it. ``film`` (M, 2) mm, ``xy`` (M, 2) pixel system,
+    ``H`` (3, 3) the projective model film mm -> pixel of the measured marks
+    (:func:`global_model`'s, which the outlier test has just fitted).
     Modifies ``status`` and ``reason`` in place; returns the indices measured again."""
     st = np.array(status)
     meas = st == "measured"
@@ -411,7 +413,6 @@ def reinstate(film, xy, status, reason, floor_px) -> np.ndarray:
     if len(cand) == 0 or meas.sum() < 8:
         return cand[:0]
     cand = cand[outline(film, meas)[cand]]
-    H = grid.projective_fit(film[meas], xy[meas])
     pred = smooth_residuals(film[meas], xy[meas] - grid.apply_h(H, film[meas]), film[cand])
     if pred is None:
         return cand[:0]
