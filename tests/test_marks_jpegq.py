@@ -114,3 +114,48 @@ def test_no_term_without_jpeg(monkeypatch):
     det = detect(scan, case.camera)
     assert np.isfinite(np.asarray(det.sigma_xy, float)).any()
     assert not called
+
+
+@pytest.mark.parametrize("quality", [45, 90])
+def test_phase_scores_are_the_masked_cosines_bit_for_bit(quality):
+    """The periodicity scores take the cosines of the selected (coefficient, step) pairs only:
+    the same values, to the last bit, as the cosines of every pair masked to 0 and summed."""
+    grey = _jpeg(_texture(quality), quality) / 255.0
+    blocks = jpegq._sample_blocks(grey, jpegq.SAMPLE_BLOCKS) * 255.0
+    D = jpegq.dct_matrix()
+    C = (D @ (blocks - 128.0) @ D.T).reshape(len(blocks), 64)[:, 1:]
+    fi = np.nonzero(np.abs(C) >= jpegq.MIN_COEF)
+    c, k = C[fi], fi[1]
+    q = jpegq._TABLES[:, k]
+    sel = (np.abs(c) >= 0.75 * q) & (q > 1.0)
+    assert 0 < sel.mean() < 1  # a mask that leaves pairs out
+    want = np.where(sel, np.cos(2.0 * np.pi * c / q), 0.0).sum(1) / np.maximum(sel.sum(1), 1)
+    got, cnt = jpegq._phase_scores(c, k)
+    assert np.array_equal(cnt, sel.sum(1))
+    assert np.array_equal(got, want)
+
+
+def test_prefetch_estimates_beside_the_caller():
+    """On two threads the estimate runs on a thread of its own and ``of_scan`` returns its
+    value (the steps of a JPEG of quality 62: the direct estimate's); on one thread nothing
+    is started."""
+    from softplot.runtime import set_threads
+
+    img = _jpeg(_texture(62, (512, 512)), 62)
+    try:
+        set_threads(2)
+        scan = Scan.from_array(img, dpi=1000.0)
+        jpegq.prefetch(scan)
+        t = jpegq._PENDING.get(scan)
+        assert t is not None
+        t.join()
+        assert scan in jpegq._CACHE  # computed by the thread, not by the call below
+        want = (jpegq.ijg_table(62) / 255.0) ** 2 / 12.0
+        assert np.array_equal(jpegq.of_scan(scan), want)
+        set_threads(1)
+        one = Scan.from_array(img, dpi=1000.0)
+        jpegq.prefetch(one)
+        assert jpegq._PENDING.get(one) is None and one not in jpegq._CACHE
+        assert np.array_equal(jpegq.of_scan(one), want)
+    finally:
+        set_threads(None)

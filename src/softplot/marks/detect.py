@@ -43,6 +43,7 @@ import numpy as np
 
 from softplot.camera import Camera, load_camera
 from softplot.errors import SoftplotError
+from softplot.marks import jpegq
 from softplot.marks.candidates import reseau_candidates
 from softplot.marks.common import (
     MM_PER_INCH,
@@ -151,6 +152,7 @@ def detect(
     t0 = time.perf_counter()
     cam = load_camera(camera)
     sc = as_scan(scan, dpi=dpi)
+    jpegq.prefetch(sc)  # the fits' JPEG quantisation, estimated beside the first stages
     if scene not in SCENE_MODELS:
         raise SoftplotError(f"scene must be {', '.join(SCENE_MODELS)}, got {scene!r}")
     if polarity not in ("auto", "positive", "negative"):
