@@ -298,23 +298,25 @@ def _top_cells(Hs, k):
     """The ``k`` highest (rotation index, (bin u, bin v)) of the histograms ``Hs``
     (A, nb, nb), each apart from the ones before by more than one rotation step or one
     bin of phase (circularly): the highest first."""
-    nb = Hs.shape[1]
-    flat = Hs.ravel()
-    order = np.argsort(-flat, kind="stable")[: max(64 * k, 256)]
+    A, nb = Hs.shape[0], Hs.shape[1]
+    order = np.argsort(-Hs.ravel(), kind="stable")[: max(64 * k, 256)]
+    # the cells within a step of rotation and a bin of phase of a picked one are blocked: the
+    # next pick is the first cell of ``order`` not blocked (the same picks as testing each
+    # cell against every picked one, without a Python loop over the cells)
+    blocked = np.zeros(Hs.shape, bool)
+    flat = blocked.reshape(-1)
     picked = []
-    for f in order:
-        a, u, v = np.unravel_index(int(f), Hs.shape)
-        close = False
-        for a2, (u2, v2) in picked:
-            du = min(abs(u - u2), nb - abs(u - u2))
-            dv = min(abs(v - v2), nb - abs(v - v2))
-            if abs(a - a2) <= 1 and du <= 1 and dv <= 1:
-                close = True
-                break
-        if not close:
-            picked.append((int(a), (int(u), int(v))))
-            if len(picked) == k:
-                break
+    pos = 0
+    while len(picked) < k and pos < len(order):
+        free = ~flat[order[pos:]]
+        if not free.any():
+            break
+        pos += int(np.argmax(free))
+        a, u, v = (int(x) for x in np.unravel_index(int(order[pos]), Hs.shape))
+        picked.append((a, (u, v)))
+        blocked[np.ix_(np.arange(max(a - 1, 0), min(a + 2, A)),
+                       np.array([u - 1, u, u + 1]) % nb, np.array([v - 1, v, v + 1]) % nb)] = True
+        pos += 1
     return picked
 
 
@@ -552,7 +554,8 @@ def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
     for _ in range(2):
         f = (xy - p0) @ np.linalg.inv(Bc).T
         idx = np.round(f)
-        inl = np.abs(f - idx).max(1) < tol
+        off = np.abs(f - idx)
+        inl = np.maximum(off[:, 0], off[:, 1]) < tol  # (the row max of two columns)
         if inl.sum() < 3:
             return None
         Mx = np.column_stack([np.ones(inl.sum()), idx[inl]])
@@ -563,7 +566,8 @@ def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
         Bc = sol[1:].T
     f = (xy - p0) @ np.linalg.inv(Bc).T
     idx = np.round(f).astype(int)
-    inl = np.abs(f - idx).max(1) < tol
+    off = np.abs(f - idx)
+    inl = np.maximum(off[:, 0], off[:, 1]) < tol
     t_fine = min(0.2, 0.5 / pmin)
     t_agree = min(t_fine, AGREE_MM / pmin)
     p0, Bc, lim_px = _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine,

@@ -11,6 +11,7 @@ polynomial through its neighbours (:func:`local_fit`). The measurement stage
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from contextlib import contextmanager
 
 import numpy as np
@@ -51,7 +52,7 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     n_val = n_val.reshape(len(n_val) if batch else 1, len(n_film), -1)  # (B, M, C)
     B = n_val.shape[0]
     k = min(k_max, len(n_film) - 1)
-    d, j = cKDTree(n_film).query(q_film, k=k + 1)
+    d, j = _nearest(q_film, n_film, k + 1)
     # leave the query point out (a zero-distance match), else the farthest neighbour
     drop = np.where(d[:, 0] < 1e-9, 0, k)
     keep = np.arange(k + 1)[None, :] != drop[:, None]
@@ -104,6 +105,37 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     grad = np.stack([coef[:, 1, :], coef[:, 2, :]], -1) / unit
     grad[level < 3] = np.nan
     return c0, grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
+
+
+#: the neighbour queries :func:`_nearest` keeps (the last ones asked for)
+NEAREST_KEPT = 8
+_NEAREST: OrderedDict = OrderedDict()
+_NEAREST_LOCK = threading.Lock()
+
+
+def _nearest(q_film, n_film, k):
+    """``cKDTree(n_film).query(q_film, k)``: the distances and indices (Q, k) of the ``k``
+    nearest of the points ``n_film`` (M, 2) to each of ``q_film`` (Q, 2) (film mm), ties in
+    the tree's order. The last :data:`NEAREST_KEPT` queries are kept by the values of their
+    points: a scan's validation asks the same ones several times (the outlier test, the
+    variance factor's draws, the rescue: the same crosses, other values), and the tree's
+    query was a quarter of the neighbours' fits. Returns read-only arrays."""
+    q = np.ascontiguousarray(q_film, float)
+    m = np.ascontiguousarray(n_film, float)
+    key = (q.shape, m.shape, int(k), q.tobytes(), m.tobytes())
+    with _NEAREST_LOCK:
+        got = _NEAREST.get(key)
+        if got is not None:
+            _NEAREST.move_to_end(key)
+            return got
+    d, j = cKDTree(n_film).query(q_film, k=k)
+    d.flags.writeable = False
+    j.flags.writeable = False
+    with _NEAREST_LOCK:
+        _NEAREST[key] = (d, j)
+        while len(_NEAREST) > NEAREST_KEPT:
+            _NEAREST.popitem(last=False)
+    return d, j
 
 
 def _solve(D, w, vals):
