@@ -69,3 +69,26 @@ def test_nearest_is_the_trees_query_kept_by_the_points_values():
     assert again[1] is not j and np.array_equal(again[1], j0)
     with pytest.raises(ValueError):
         d[0, 0] = 1.0  # read-only: a caller cannot change what the next one gets
+
+
+def test_overview_grey_range_once_per_overview():
+    """frame_evidence and seeable of one overview share its grey and 5-95 % points (computed
+    once), give what they gave computing them each, and another overview gets its own."""
+    from softplot.marks import coarse, lattice
+
+    rng = np.random.default_rng(3)
+    q = rng.integers(0, 200, (300, 400)).astype(np.uint8)
+    q[:, :40] = 250  # a bright border: an edge for the evidence
+    ov = coarse.Overview(q, 1.0 / 255.0)
+    g, lo, hi = lattice._grey_range(ov)
+    assert lattice._grey_range(ov)[0] is g  # kept
+    sub = ov[:, :][::1, ::1]
+    assert np.array_equal(g, sub)
+    assert (lo, hi) == tuple(np.percentile(g[:: 300 // 256, :: 400 // 256], [5, 95]))
+    corners = np.array([[[160.0, 40.0], [1500.0, 40.0], [1500.0, 1100.0], [160.0, 1100.0]]])
+    ev = lattice.frame_evidence(ov, 4, 10.0, 5.0)(corners)
+    lattice._GREY.clear()  # computed afresh: the same evidence
+    assert np.array_equal(lattice.frame_evidence(ov, 4, 10.0, 5.0)(corners), ev)
+    other = coarse.Overview(np.full((300, 400), 30, np.uint8), 1.0 / 255.0)
+    g2, lo2, hi2 = lattice._grey_range(other)
+    assert g2 is not g and lo2 == hi2 == float(g2[0, 0]) and lo2 != lo

@@ -11,6 +11,7 @@ hand-over is :class:`Lattice`.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -106,6 +107,30 @@ class Lattice:
         return coarse.ov_to_full(self.peaks.xy[self.grid.index], self.factor)
 
 
+_GREY: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _grey_range(ov):
+    """``(g, lo, hi)``: the overview's float32 grey ``g`` (overview pixel system) and the 5 and
+    95 % points of a subsample of it (about 256 x 256). Computed once per overview object:
+    :func:`frame_evidence` (once per polarity fitted) and :func:`seeable` of one lattice
+    stage ask for the same ones (an overview that cannot be weakly keyed: each time)."""
+    try:
+        return _GREY[ov]
+    except (KeyError, TypeError):
+        pass
+    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    Hh, W = g.shape
+    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
+    lo, hi = np.percentile(sub, [5, 95])
+    out = (g, lo, hi)
+    try:
+        _GREY[ov] = out
+    except TypeError:
+        pass
+    return out
+
+
 def frame_evidence(ov, f: int, ppm: float, pitch_mm: float | None = None):
     """The evidence of a film format's edge in the overview, for :func:`grid.fit_grid`.
 
@@ -123,10 +148,8 @@ def frame_evidence(ov, f: int, ppm: float, pitch_mm: float | None = None):
     crosses, as :func:`seeable` judges) when they are at least :data:`EDGE_SHOWN` of the
     edge: a flat dark region over part of the film (dark rows) hides the edge there.
     """
-    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    g, lo, hi = _grey_range(ov)
     Hh, W = g.shape
-    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
-    lo, hi = np.percentile(sub, [5, 95])
     rng = max(float(hi - lo), 1e-6)
     d = max(2.0, 0.3 * ppm / f)
 
@@ -204,10 +227,8 @@ def seeable(ov, f: int, ppm: float, pitch_mm: float):
     %). A flat dark region (a sky, a shadow) or the unexposed border is not: a cross there
     does not show, however the grid is named.
     """
-    g = ov[:, :] if hasattr(ov, "grey") else np.asarray(ov, np.float32)
+    g, lo, hi = _grey_range(ov)
     Hh, W = g.shape
-    sub = g[:: max(1, Hh // 256), :: max(1, W // 256)]
-    lo, hi = np.percentile(sub, [5, 95])
     rng = max(float(hi - lo), 1e-6)
     level = _level(g, f, max(1.0, 0.1 * pitch_mm * ppm / f))
 
