@@ -100,7 +100,8 @@ def main(argv=None) -> int:
         results.append((case, sc))
         d = sc.to_dict()
         print(f"[{k + 1}/{len(seeds)}] seed {seed} {case.camera}: "
-              f"{'ok' if not bad else 'FAIL'} measured {sc.measured}/{sc.visible}, "
+              f"{'ok' if not bad else 'FAIL'} measured {sc.measured}/{sc.visible}"
+              f"{_below(sc)}, "
               f"rms {d['rms_px']:.4f} px (crb {d['crb_px']:.4f}), z {d['z_rms']:.2f}, "
               f"detect {sc.seconds:.2f} s, total {time.perf_counter() - t1:.1f} s"
               + (f" | {bad[0][:160]}" if bad else ""), flush=True)
@@ -123,6 +124,13 @@ def main(argv=None) -> int:
         print(f"  {k}: misses {'; '.join(v)}")
     _write(a, agg, failures, len(seeds), seeds)
     return 0
+
+
+def _below(sc) -> str:
+    """' (k below detection)' for a score with visible crosses under their detection threshold
+    (``softplot.synthetic.sweep.mark_snr``), else ''."""
+    k = sum(r[0] < r[1] for r in sc.snr_measured + sc.snr_missed)
+    return f" ({k} below detection)" if k else ""
 
 
 def _merge(a) -> int:

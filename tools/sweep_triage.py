@@ -4,7 +4,8 @@
 Reads the ``--jsonl`` lines of ``tools/sweep_detect.py`` (one or more files; a seed seen twice
 keeps its last line) and writes a markdown triage: for each class of failure (no result,
 whole-grid row/col shift, scattered wrong ids, claims on invisible crosses, visible crosses not
-measured by reason, RMS over the bound, normalised error out of range) the seeds, the layout and
+measured by reason, RMS over the bound, normalised error out of range; on logs with the crosses'
+signal-to-noise ratios, refusals and misses below detection apart) the seeds, the layout and
 conditions they share, and one command that reruns them. The biggest classes come first.
 
 Usage::
@@ -61,7 +62,10 @@ def classify(d: dict) -> list[tuple[str, str]]:
         amb = True  # an ambiguous render, warned: wrong ids are not a failure
     else:
         amb = False
-    if not d["result"]:
+    if not d["result"] and d.get("below_detection"):  # nothing a detector can be asked for
+        out.append(("no result where none is required (below detection)",
+                    f"{d['below_detection']}; {_generic(d['error'])}"))
+    elif not d["result"]:
         out.append(("no result", _generic(d["error"])))
     wrong = d.get("wrong") or []
     shifted = False
@@ -86,9 +90,16 @@ def classify(d: dict) -> list[tuple[str, str]]:
     if d.get("claimed"):
         out.append(("claims on invisible crosses", ", ".join(d["claimed"][:6])))
     if d["result"] and d.get("missed"):
-        reasons = Counter(m.split(": ", 1)[1] if ": " in m else m for m in d["missed"])
+        below = _below(d)
+        reasons = Counter(m.split(": ", 1)[1] if ": " in m else m
+                          for m, b in zip(d["missed"], below, strict=True) if not b)
         for r, k in reasons.items():
             out.append((f"visible not measured: {r}", f"{k} of {d['visible']}"))
+        if any(below):
+            out.append(("visible below detection, not measured (not required)",
+                        f"{sum(below)} of {d['visible']}"))
+    if d.get("claimed_below"):
+        out.append(("gross measurements below detection", ", ".join(d["claimed_below"][:6])))
     rms, crb, z = _num(d.get("rms_px")), _num(d.get("crb_px")), _num(d.get("z_rms"))
     if math.isfinite(rms) and math.isfinite(crb) and crb > 0 and rms > RMS_OVER_CRB * crb:
         kind = "RMS over 1.25x the bound" + (" (with gross errors)" if d.get("gross") else "")
@@ -99,6 +110,15 @@ def classify(d: dict) -> list[tuple[str, str]]:
                     f"(sigmas {'too small' if z > Z_RANGE[1] else 'too large'})",
                     f"z rms {z:.2f}, {d['measured']} crosses"))
     return out
+
+
+def _below(d: dict) -> list[bool]:
+    """Per missed cross: is it below detection (its matched-filter SNR under its threshold,
+    ``snr_missed`` of logs that carry it; all False otherwise)?"""
+    rows = d.get("snr_missed")
+    if not rows or len(rows) != len(d["missed"]):
+        return [False] * len(d["missed"])
+    return [r[0] < r[1] for r in rows]
 
 
 def _layout(d: dict) -> str:
