@@ -92,3 +92,17 @@ def test_overview_grey_range_once_per_overview():
     other = coarse.Overview(np.full((300, 400), 30, np.uint8), 1.0 / 255.0)
     g2, lo2, hi2 = lattice._grey_range(other)
     assert g2 is not g and lo2 == hi2 == float(g2[0, 0]) and lo2 != lo
+
+
+@pytest.mark.parametrize("shape", [(1, 53, 53), (6, 61, 61), (20, 51, 51), (3, 5, 29)])
+def test_patch_gradients_are_each_patchs_own(shape):
+    """The joint scene's prior weights take the patches' gradients in one Sobel over the
+    stacked patches: bit for bit each patch's own (its border reflected), not its neighbour's
+    in the stack."""
+    from softplot.marks import measure
+
+    rng = np.random.default_rng(shape[0])
+    B = rng.normal(0.5, 0.2, shape).astype(np.float32)
+    B[:, :2] += 0.4  # an edge at every patch's top: its neighbour's bottom differs
+    want = np.stack([measure._grad_magnitude(b) for b in B])
+    assert np.array_equal(measure._patch_gradients(B), want)

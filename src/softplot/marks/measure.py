@@ -567,8 +567,22 @@ def _template(shape, origin, c, A, s, hw, batch=4):
 def _edge_weights(B, noise, delta):
     """:func:`_prior_weights` of scene estimates ``B`` (N, h, w), ``|grad B|`` by Sobel / 8
     within each patch, as :func:`scene_background` gives its own."""
+    return _prior_weights(_patch_gradients(B), noise, delta)
+
+
+def _patch_gradients(B):
+    """``|grad B|`` (N, h, w) of each patch ``B`` (N, h, w) alone (:func:`_grad_magnitude`,
+    OpenCV's reflected border), in one call: the patches stacked with the row their border
+    reflects (row 1, row h - 2) above and below each (the same sums in every pixel)."""
     B = np.asarray(B, np.float32)
-    return _prior_weights(np.stack([_grad_magnitude(b) for b in B]), noise, delta)
+    n, h, w = B.shape
+    if h < 3:
+        return np.stack([_grad_magnitude(b) for b in B]).reshape(B.shape)
+    big = np.empty((n, h + 2, w), np.float32)
+    big[:, 1 : h + 1] = B
+    big[:, 0] = B[:, 1]
+    big[:, h + 1] = B[:, h - 2]
+    return _grad_magnitude(big.reshape(n * (h + 2), w)).reshape(n, h + 2, w)[:, 1 : h + 1]
 
 
 def _replace(res: LSMResult, at: np.ndarray, new: LSMResult, frm: np.ndarray) -> LSMResult:
