@@ -106,3 +106,35 @@ def test_patch_gradients_are_each_patchs_own(shape):
     B[:, :2] += 0.4  # an edge at every patch's top: its neighbour's bottom differs
     want = np.stack([measure._grad_magnitude(b) for b in B])
     assert np.array_equal(measure._patch_gradients(B), want)
+
+
+def test_a_deferred_polarity_gives_the_lattice_of_both_scored():
+    """On a render of dark crosses the bright sign's correlations bound its lattice below the
+    dark sign's: it is not scored by its arms, and the lattice stage never scores it (the
+    dark lattice beats its bound). The lattice is the one found with both signs scored, to
+    the last bit, and the bright sign's bound, once scored, lies below what deferred it."""
+    from softplot.camera import load_camera
+    from softplot.io import Scan
+    from softplot.marks.candidates import reseau_candidates
+    from softplot.marks.lattice import fit_lattice
+    from softplot.marks.overview import reseau_overview
+    from softplot.marks.template import cross_shape
+    from softplot.synthetic import ScanSpec, render_scan
+
+    cam = load_camera("rollei-6006")
+    img, _ = render_scan(cam, ScanSpec(dpi=600.0, rotation_deg=1.5, scene="busy"), seed=5)
+    sc = Scan.from_array(img, dpi=600.0)
+    ppm = 600.0 / 25.4
+    ov = reseau_overview(sc, cross_shape(cam, ppm).width, ppm, "scan")
+    lazy = reseau_candidates(sc, ov, cam, "auto", 1.0)
+    assert set(lazy.deferred) == {1} and set(lazy.peaks) == {-1}
+    upper = lazy.deferred[1][0]
+    got = fit_lattice(sc, ov, lazy, cam, "auto", 0.0)
+    assert 1 in lazy.deferred  # never scored: the dark lattice beat its bound
+    full = reseau_candidates(sc, ov, cam, "auto", 1.0).complete()
+    assert set(full.peaks) == {1, -1} and not full.deferred
+    assert full.bound[1] <= upper < full.bound[-1]
+    want = fit_lattice(sc, ov, full, cam, "auto", 0.0)
+    assert got.sign == want.sign == -1
+    assert np.array_equal(got.grid.H, want.grid.H)
+    assert np.array_equal(got.grid.node, want.grid.node) and got.grid.score == want.grid.score

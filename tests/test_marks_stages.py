@@ -174,7 +174,9 @@ def test_candidate_stage_finds_every_visible_cross(turned, coarse_stages):
     sc, truth, cam = turned
     ov, cands = coarse_stages
     txy, vis = _truth(CAM, truth)
-    assert set(cands.peaks) == {1, -1} and cands.template.length > 0
+    # both signs found; the bright one, which cannot outscore the dark, not scored by its
+    # arms yet (tests/test_marks_serial_speed.py)
+    assert set(cands.peaks) | set(cands.deferred) == {1, -1} and cands.template.length > 0
     dark = coarse.ov_to_full(cands.peaks[-1].xy, ov.factor)  # the render's crosses are dark
     d = np.hypot(*(txy[:, None, :] - dark[None]).transpose(2, 0, 1)).min(1)
     assert vis.sum() == 121 and d[vis].max() < 1.0, d.max()

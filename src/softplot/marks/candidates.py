@@ -12,7 +12,8 @@ Marks searched each in its own window (fiducials: :func:`window_candidates`) han
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -46,6 +47,11 @@ class Candidates:
         best peaks, one per cross the scan can hold).
     template : MarkShape
         The cross template at the overview's scale (overview px).
+    deferred : dict
+        Sign -> ``(upper, score)``: a sign not yet scored by its arms, whose ``bound`` is at
+        most ``upper`` (its NCC peaks' own), below every bound in ``bound``; ``score()``
+        scores it (:meth:`take`). A lattice search that cannot use it (a fit already beats
+        ``upper``) never does.
     """
 
     ncc: np.ndarray
@@ -53,6 +59,29 @@ class Candidates:
     peaks: dict
     bound: dict
     template: MarkShape
+    deferred: dict = field(default_factory=dict)
+
+    def take(self, sg: int) -> bool:
+        """Score the deferred sign ``sg`` by its arms now: its peaks and bound join
+        :attr:`peaks` and :attr:`bound` when it keeps 4 peaks or more (returned)."""
+        _, score = self.deferred.pop(sg)
+        got = score()
+        if got is None:
+            return False
+        self.peaks[sg], self.bound[sg] = got
+        return True
+
+    def complete(self) -> Candidates:
+        """Every deferred sign scored (:meth:`take`); returns self."""
+        for sg in list(self.deferred):
+            self.take(sg)
+        return self
+
+
+def _bound(score: np.ndarray, n_in: int) -> float:
+    """The highest score a lattice of peaks with these scores can reach: the sum of the
+    ``n_in`` best (with a margin for the order of summation)."""
+    return float(np.sort(score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
 
 
 def crosses_in(scan, res, px_per_mm: float) -> int:
@@ -80,21 +109,38 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
     # the crosses the scan can hold at most (a part of the grid shows fewer than the
     # certificate's): the number of candidates kept and the polarity's bound follow it
     n_in = crosses_in(scan, res, px_per_mm)
-    peaks, bound = {}, {}
     keep = peaks_kept(n_in)
-    for sg in polarity_signs(polarity):
-        pk = coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
-                               threshold=0.2,
-                               max_peaks=ARM_POOL * keep, sign=sg, image=ov.image,
-                               std_half=max(int(arm_half), 2), min_contrast=noise_floor)
-        pk = arm_scored(pk, ov.image, sg, arm_half, shape_ov.width, s_ov, n_in, keep)
-        if len(pk) < 4:
-            continue
+    raw = {sg: coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
+                                 threshold=0.2, max_peaks=ARM_POOL * keep, sign=sg,
+                                 image=ov.image, std_half=max(int(arm_half), 2),
+                                 min_contrast=noise_floor)
+           for sg in polarity_signs(polarity)}
+
+    def scored(sg):
+        # the sign's peaks scored by their arms and its bound, or None with fewer than 4
+        pk = arm_scored(raw[sg], ov.image, sg, arm_half, shape_ov.width, s_ov, n_in, keep)
         # a grid's score is the sum of its peaks' scores, one peak per cross: at most the
-        # sum of the ``count`` best ones (with a margin for the order of summation)
-        peaks[sg] = pk
-        bound[sg] = float(np.sort(pk.score)[::-1][:n_in].sum()) * (1.0 + 1e-9) + 1e-9
-    return Candidates(ncc=R, half=h, peaks=peaks, bound=bound, template=shape_ov)
+        # sum of the ``count`` best ones
+        return None if len(pk) < 4 else (pk, _bound(pk.score, n_in))
+
+    # the arms' scores are at most the correlations (times at most 1): a sign's bound is at
+    # most its NCC peaks' (with a margin for the rounding); the sign that can score most is
+    # scored first, another only when it could outscore it (else deferred: a fit of the
+    # first usually beats it, and its arms are never read)
+    upper = {sg: _bound(np.maximum(pk.score, 0.0), n_in) * (1.0 + 1e-6) + 1e-9
+             for sg, pk in raw.items()}
+    first = max(raw, key=lambda sg: upper[sg]) if raw else None
+    got = {first: scored(first)} if raw else {}
+    peaks, bound, deferred = {}, {}, {}
+    for sg in raw:  # the signs in their order (a tie of bounds keeps it)
+        if sg != first and got[first] is not None and upper[sg] < got[first][1]:
+            deferred[sg] = (upper[sg], partial(scored, sg))
+            continue
+        g = got[sg] if sg in got else scored(sg)
+        if g is not None:
+            peaks[sg], bound[sg] = g
+    return Candidates(ncc=R, half=h, peaks=peaks, bound=bound, template=shape_ov,
+                      deferred=deferred)
 
 
 #: NCC peaks gathered per peak kept: the ones kept are those whose arms show best

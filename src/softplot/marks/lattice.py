@@ -275,11 +275,16 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     show = seeable(ov.image, f, px_per_mm, pmin)
     # fit the polarity that can score most first; another one only if it could still win
     fits = {}
-    for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]):
-        pk, bound = cands.peaks[sg], cands.bound[sg]
+    # (a deferred sign's bound lies below every other's: it comes last)
+    for sg in sorted(cands.peaks, key=lambda k: -cands.bound[k]) + list(cands.deferred):
         # a fit of too few crosses to be a reseau (junk of the other polarity) prunes none
         done = [g.score for g, _, _ in fits.values()
                 if g is not None and len(g.node) >= MIN_FIT]
+        if sg in cands.deferred:
+            # scored by its arms only when its correlations' bound could still win
+            if (done and cands.deferred[sg][0] < max(done)) or not cands.take(sg):
+                continue
+        pk, bound = cands.peaks[sg], cands.bound[sg]
         if done and bound < max(done):
             continue
 
@@ -555,7 +560,7 @@ def estimate_dpi(scan, camera, polarity: str, rotate_deg: float, name: str) -> f
     # a lattice fitted with a free scale (from the peaks' spacing) gives the dpi; the
     # candidates are those of the lattice stage at the guessed scale (NCC peaks scored by
     # their arms: scene texture correlates as well as crosses do, but shows no arms)
-    cands = reseau_candidates(scan, ov, camera, polarity, 1.0)
+    cands = reseau_candidates(scan, ov, camera, polarity, 1.0).complete()
     best_g = None
     pmin = min(res.pitch_x, res.pitch_y)
     need = max(4, 0.2 * res.count)
