@@ -138,3 +138,23 @@ def test_a_deferred_polarity_gives_the_lattice_of_both_scored():
     assert got.sign == want.sign == -1
     assert np.array_equal(got.grid.H, want.grid.H)
     assert np.array_equal(got.grid.node, want.grid.node) and got.grid.score == want.grid.score
+
+
+def test_patches_are_nan_exactly_off_the_scan():
+    """The windows start uninitialised: the ones wholly inside are gathered whole, the others
+    NaN where they leave the scan (also wholly outside) and the scan's grey elsewhere."""
+    from softplot.io import Scan
+    from softplot.marks.measure import patches
+
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 255, (90, 120)).astype(np.uint8)
+    sc = Scan.from_array(img, dpi=1000.0)
+    centres = np.array([[60.0, 45.0], [2.0, 3.0], [118.4, 88.6], [-40.0, 10.0], [30.0, 20.0]])
+    for _ in range(3):  # reused memory must not show through
+        stack, origin = patches(sc, centres, 6)
+        g = sc.grey()
+        for w, (x0, y0) in zip(stack, origin.astype(int), strict=True):
+            ys, xs = np.mgrid[y0 : y0 + 13, x0 : x0 + 13]
+            on = (xs >= 0) & (xs < 120) & (ys >= 0) & (ys < 90)
+            assert np.isnan(w[~on]).all()
+            assert np.array_equal(w[on], g[ys[on], xs[on]])

@@ -35,7 +35,9 @@ def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarra
     n = len(c)
     size = 2 * half + 1
     origin = c - half
-    out = np.full((n, size, size), np.nan, np.float32)
+    # every pixel is written below: the windows wholly inside by the gather, the others
+    # NaN first (pixels outside the scan)
+    out = np.empty((n, size, size), np.float32)
     if n == 0:
         return out, origin.astype(float)
     H, W = scan.height, scan.width
@@ -53,6 +55,7 @@ def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarra
         todo = np.where(~inside)[0]
     else:
         todo = np.arange(n)
+    out[todo] = np.nan
     for i in todo:
         x0, y0 = origin[i]
         xa, ya = max(x0, 0), max(y0, 0)
@@ -516,8 +519,9 @@ def _refit_scene(stack, origin, res, bg, keep, shape, fit_shape, passes, sign, r
             if not (ok & m).any():
                 alive[m] = False
                 continue
-            noise_set[m] = max(float(np.median(res.noise[ok & m])), 1e-4)
-            s_med[m] = float(np.median(res.s[ok & m]))
+            # (median_rows: NumPy's median from one partition, the values finite here)
+            noise_set[m] = max(float(median_rows(res.noise[ok & m][None])[0]), 1e-4)
+            s_med[m] = float(median_rows(res.s[ok & m][None])[0])
         ok &= alive
         if select is not None:
             ok &= select
