@@ -537,7 +537,7 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
         f4 = measure(sc, shape, np.tile(target[grp], (4, 1)), np.tile(Ag, (4, 1, 1)), s0,
                      init_err, sign, rules, anchor=np.tile(target[grp], (4, 1)),
                      max_shift=max_shift, drop_part=np.repeat(np.arange(4), m),
-                     fit_shape=fit_shape, scene_tv=scene_tv, blur=blur)
+                     fit_shape=fit_shape, scene_tv=scene_tv, blur=blur, gain_ref=gain_ref)
         for k in range(4):
             f2 = f4.rows(slice(k * m, (k + 1) * m))
             sg = f2.sigma
@@ -551,7 +551,8 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
             # three clean half-arms measure a cross nearly as well as four: a fit far less
             # precise than the measured crosses lies on the conflicting content it was to
             # avoid
-            good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
+            good &= np.nan_to_num(sg * at_peers(f2.gain, gain_ref), nan=np.inf) <= (
+                RESCUE_MAX_SIGMA_RATIO * s_meas)
             if gain_ref is not None and f2.gain is not None:
                 good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
             for j in np.where(good)[0]:
@@ -560,6 +561,18 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
                 xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
                 status[i], reason[i] = "measured", ""
     return bool(np.isfinite(best).any())
+
+
+def at_peers(gain, gain_ref) -> np.ndarray | float:
+    """The factor (K,) that takes the precision of fits of contrast ``gain`` (K,) grey units to
+    the precision they would have at the peers' contrast ``gain_ref``: ``|gain| / gain_ref``
+    from :data:`RESCUE_MIN_GAIN` to 1 (1 without ``gain_ref``). A cross under a dim region
+    is as much less precise as it is less contrasted; a fit on conflicting scene content is
+    less precise at any contrast."""
+    if gain_ref is None or gain is None or not gain_ref > 0:
+        return 1.0
+    return np.clip(np.abs(np.nan_to_num(np.asarray(gain, float))) / gain_ref, RESCUE_MIN_GAIN,
+                   1.0)
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
