@@ -734,8 +734,9 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     validation: from the position their measured neighbours predict (the model ``Hm`` plus
     a local quadratic of the residuals), with the affine their positions predict held
     (:func:`position_affine`, else the model's) and the blur held. Accepted as the rescue
-    accepts (:func:`rescue`: within the outlier test's threshold of the prediction, as
-    precise and as contrasted). Measured last, they feed no neighbour's prediction, model or
+    accepts (:func:`rescue`: a faint cross as the first pass accepts it, within the outlier
+    test's threshold of the prediction, as precise at its peers' contrast, :func:`at_peers`,
+    and as contrasted). Measured last, they feed no neighbour's prediction, model or
     variance factor; their covariance is scaled by ``vfac``. Updates ``m`` and ``arms`` in
     place; returns the indices measured."""
     film, ppm, shape = pr.film, pr.px_per_mm, m.shape
@@ -757,9 +758,10 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
         return q
     held, _ = position_affine(film, m.xy, arms == 2, ppm)
     A = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], pr.A[q])
+    gain_ref = peer_gain(m.fine, least=1)
     f = measure(sc, shape, target, A, pr.s0, pr.init_err, pr.sign, rules, anchor=target,
                 max_shift=pr.max_shift, drop_part=part, fit_shape=False,
-                scene_tv=m.scene_tv, blur=held_blur(m.fine))
+                scene_tv=m.scene_tv, blur=held_blur(m.fine), gain_ref=gain_ref)
     # the outline's spread of the departures (the crosses at the scan's edge extrapolate)
     edge = outline(film, arms == 2)
     dev = np.hypot(*(r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])).T)
@@ -772,9 +774,8 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     thr = outlier_threshold(s_out, np.broadcast_to(floor_px, (len(film),))[q], sg, exp)
     thr = thr * _reach_beyond(film[q], film[meas], sigma[meas], edge[meas])
     good = f.ok & (np.hypot(*(f.xy - target).T) <= thr)
-    good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * float(np.median(
-        sigma[meas]))
-    gain_ref = peer_gain(m.fine, least=1)
+    good &= np.nan_to_num(sg * at_peers(f.gain, gain_ref), nan=np.inf) <= (
+        RESCUE_MAX_SIGMA_RATIO * float(np.median(sigma[meas])))
     if gain_ref is not None and f.gain is not None:
         good &= np.abs(np.nan_to_num(f.gain)) >= RESCUE_MIN_GAIN * gain_ref
     got = q[good]
