@@ -5,6 +5,8 @@ All positions are in the pixel system of the full-resolution scan.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import warnings
 from dataclasses import dataclass, fields
 
@@ -294,9 +296,50 @@ def _prior_weights(grad: np.ndarray, noise: np.ndarray, delta: float) -> np.ndar
     return wts
 
 
+#: a patch whose opening (:func:`scene_background`) departs from a plane, away from the
+#: cross, by no more than this many noise sigmas (RMS) shows a flat scene: the plane is its
+#: scene estimate (:func:`plane_scenes`). The opening of a flat, noisy patch departs by
+#: 0.05-0.15 sigma (its lumps); the sweep's textures by more where they matter
+PLANE_GATE = 0.25
+
+
+def plane_scenes(stack: np.ndarray, S: np.ndarray, away: np.ndarray, step: float = 0.0,
+                 gate: float = PLANE_GATE) -> tuple[np.ndarray, np.ndarray]:
+    """Which patches' scene is flat: a plane fitted (least squares) to the opening ``S`` over
+    the pixels ``away`` from the cross, and ``S`` departing from it there by at most ``gate``
+    times the patch's noise (RMS; the noise the MAD of ``stack - S`` over those pixels), or by
+    at most the scan's grey ``step`` (a stored scan shows nothing finer: a JPEG's flat patch
+    departs by about one step while its noise, smoothed away, is far less).
+
+    The opening of a flat scene is the background plus the closing's lumps of noise (on the
+    scale of its disc) and, where the blurred bars meet, a dip the disc could not close: both
+    are noise and a piece of the mark in the scene estimate, where the plane LSM fits with
+    the mark (its level and tilt) has none. ``stack``, ``S`` (N, h, w) grey, patch pixel
+    system; ``away`` (N, h, w) bool. Returns ``(flat (N,) bool, P (N, h, w) float32)``, ``P``
+    the fitted planes (patch pixel system), valid where ``flat``."""
+    n, h, w = S.shape
+    flat = np.zeros(n, bool)
+    P = np.zeros(S.shape, np.float32)
+    if n == 0:
+        return flat, P
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    X = np.stack([np.ones(h * w), (x.ravel() - w / 2) / w, (y.ravel() - h / 2) / h], 1)
+    fin = np.isfinite(stack).reshape(n, -1).all(1)
+    for i in np.where(fin & (away.reshape(n, -1).sum(1) >= 3 * X.shape[1]))[0]:
+        k = away[i].ravel()
+        si = S[i].ravel().astype(np.float64)
+        coef = np.linalg.lstsq(X[k], si[k], rcond=None)[0]
+        plane = X @ coef
+        noise = 1.4826 * np.median(np.abs(stack[i].ravel()[k] - si[k]))
+        dev = np.sqrt(np.mean((si[k] - plane[k]) ** 2))
+        flat[i] = dev <= max(gate * noise, step)
+        P[i] = plane.reshape(h, w)
+    return flat, P
+
+
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
          scene_tv=0, rules=None, first=None, edges=False, fit_blur=True, tv_select=None,
-         groups=None, bg_out=None, scene_bg=None):
+         groups=None, bg_out=None, scene_bg=None, plane=False):
     """Patches, scene background and LSM for a set of marks (``drop_part``: a half-arm of
     each cross, 0..3 as in :func:`softplot.marks.lsm._parts`, given weight 0; ``scene_tv``:
     passes of the joint scene estimate of :func:`_refit_scene` after the first fit;
@@ -306,20 +349,20 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
     (pixel system, (M, h, w)) of the marks with a scene edge (``edge`` above
     :data:`softplot.marks.scene_tv.EDGE_MIN`) is appended to; ``scene_bg``: that estimate of
     the marks ``tv_select``, with ``first``, from a call with the same arguments: the refit
-    with the joint scene then does not compute it again, and gives the same values).
+    with the joint scene then does not compute it again, and gives the same values;
+    ``plane``: a flat patch's scene is its plane, :func:`_flat_to_plane`).
     Returns ``(LSMResult, edge)``; ``edge``, with ``edges``: :func:`_footprint_gradient` over
     the fitted contrast, else (and for other marks) NaN."""
-    sv = np.linalg.svd(A0, compute_uv=False)
-    grow = float(1.0 / max(sv.min(), 1e-3))
-    s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
-    half = int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
-    stack, origin = patches(scan, c0, half)
+    stack, origin = patches(scan, c0, _half(shape, A0, s0, init_err))
     if scene_bg is not None:  # only the joint scene's start is wanted, and was computed
         bg = np.zeros(stack.shape, np.float32)
         bg[np.asarray(tv_select, bool)] = scene_bg
         wt = grad = None
     else:
         bg, wt, grad = scene_background(stack, shape, s0, sign) if scene else (None, None, None)
+        if plane and grad is not None and shape.kind == "cross":
+            bg, wt = _flat_to_plane(stack, origin, c0, A0, shape, s0, init_err, bg, wt,
+                                    1.0 / scan.full_scale)
     keep = None
     if drop_part is not None and shape.kind == "cross":
         A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
@@ -358,6 +401,106 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
         res.part_gain[rows, dp] = np.nan
         res.support[rows, dp] = np.nan
     return res, edge
+
+
+def _flat_to_plane(stack, origin, c0, A0, shape, s0, init_err, bg, wt, step):
+    """The scene estimate ``bg`` and prior weights ``wt`` (N, h, w, patch pixel system) with
+    every flat patch's (:func:`plane_scenes`, judged away from the cross's centre: beyond
+    ``width / 2 + 3 s0 + init_err + 1`` px of it, where the blurred bars meet and the opening
+    cannot close them; along and beside the bars it removes them, and a scene line there is
+    seen; ``step`` the scan's grey step) replaced by its plane and unit weights."""
+    A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
+    u, v = patch_frame(origin, c0, A, stack.shape)
+    away = np.hypot(u, v) > 0.5 * shape.width + 3.0 * s0 + init_err + 1.0
+    flat, P = plane_scenes(stack, bg, away, step)
+    if flat.any():
+        bg = bg.copy()
+        bg[flat] = P[flat]
+        wt = wt.copy()
+        wt[flat] = 1.0
+    return bg, wt
+
+
+def _half(shape, A0, s0, init_err) -> int:
+    """The half-size (px) of the patches :func:`_fit` fits (affines ``A0``, blur ``s0``,
+    start error ``init_err``)."""
+    sv = np.linalg.svd(A0, compute_uv=False)
+    grow = float(1.0 / max(sv.min(), 1e-3))
+    s_cap = float(np.hypot(s0, init_err)) if init_err > 0.75 else s0
+    return int(np.ceil(shape.extent * grow + 3.0 * s_cap + init_err + 3))
+
+
+#: a call of :func:`measure` takes the plane as the scene of its patches where this share
+#: of its (at least PLANE_LEAST) patches are flat: a scan with a flat scene. Over a busy
+#: scene, a flat patch beside its sharp edges may hide a line narrower than the opening's
+#: disc (a scratch) that the opening's estimate half followed; and crosses fitted over
+#: planes beside others over openings (a corner's by the format edge) differ in their fitted
+#: shape, which the shape test then refuses (a 250 dpi scan blurred 2.2 px: 3 corner crosses)
+PLANE_SHARE = 1.0
+#: ... of at least this many patches (a trial of 8 crosses for the arm length does not)
+PLANE_LEAST = 9
+#: ... of crosses at least this many blur sigmas long: over the plane a short, blurred cross
+#: came out worse than over the opening (a 250 dpi scan blurred 2.2 px, crosses 6 px long:
+#: 1.36x its bound against 1.11x; the template's mismatch there, which the opening's
+#: estimate partly takes up, is not diagnosed)
+PLANE_MIN_LENGTH = 5.0
+
+
+_PLANE = contextvars.ContextVar("softplot_marks_plane", default=True)
+#: a list :func:`flat_scan` appends to when it finds a flat scan (None: nobody asks)
+_PLANE_USED = contextvars.ContextVar("softplot_marks_plane_used", default=None)
+
+
+@contextlib.contextmanager
+def plane_watch():
+    """Yields a list that is not empty once :func:`measure` took a plane within the
+    context."""
+    used: list = []
+    token = _PLANE_USED.set(used)
+    try:
+        yield used
+    finally:
+        _PLANE_USED.reset(token)
+
+
+@contextlib.contextmanager
+def opening_only():
+    """Within this context :func:`measure` takes the opening's scene estimate everywhere
+    (:func:`flat_scan` says no scan is flat): the detector's fallback where the plane's
+    detection found no reseau."""
+    token = _PLANE.set(False)
+    try:
+        yield
+    finally:
+        _PLANE.reset(token)
+
+
+def flat_scan(scan, shape, c0, A0, s0, init_err, sign) -> bool:
+    """Whether the scene under the crosses at ``c0`` (N, 2, pixel system; affines ``A0``)
+    is flat: at least :data:`PLANE_SHARE` of their :data:`PLANE_LEAST` or more patches
+    (:func:`plane_scenes`, as :func:`_fit` cuts them), the cross at least
+    :data:`PLANE_MIN_LENGTH` blurs ``s0`` long. Never within :func:`opening_only`."""
+    n = len(c0)
+    if (n < PLANE_LEAST or shape.kind != "cross" or not _PLANE.get()
+            or shape.length < PLANE_MIN_LENGTH * s0):
+        return False
+    rough = 0
+    for k in range(0, n, 32):  # in chunks: bounded memory, and a busy scan stops early
+        c = c0[k : k + 32]
+        A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))[k : k + 32]
+        stack, origin = patches(scan, c, _half(shape, A0, s0, init_err))
+        bg, _, grad = scene_background(stack, shape, s0, sign)
+        if grad is None:
+            return False
+        u, v = patch_frame(origin, c, A, stack.shape)
+        away = np.hypot(u, v) > 0.5 * shape.width + 3.0 * s0 + init_err + 1.0
+        rough += int((~plane_scenes(stack, bg, away, 1.0 / scan.full_scale)[0]).sum())
+        if rough > (1.0 - PLANE_SHARE) * n:
+            return False
+    used = _PLANE_USED.get()
+    if used is not None:
+        used.append(True)
+    return True
 
 
 def _footprint_gradient(grad, origin, c0, A0, shape, s0):
@@ -909,6 +1052,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
     reason = [""] * n
     fast = min(init_err, 0.6)
     passes = [(np.arange(n), fast)]
+    plane = bool(scene) and not scene_tv and flat_scan(scan, shape, c0, A0, s0, fast, sign)
     line = None  # the first pass's contrast line (``contrast``)
     for p_i in range(2):
         idx, ie = passes[p_i] if p_i < len(passes) else (None, None)
@@ -928,7 +1072,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             held = [] if want and REUSE_OPENING else None
             res, e = _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
                           drop_part[k] if multi else drop_part, tv, rules, edges=want,
-                          fit_blur=fb, groups=sets[k] if multi else None, bg_out=held)
+                          fit_blur=fb, groups=sets[k] if multi else None, bg_out=held,
+                          plane=plane)
             return res, e, (held[0] if held else None)
 
         # chunks are independent: fitted on the process's threads (runtime.thread_map); the
