@@ -1,63 +1,28 @@
-"""The rescue of refused crosses (:func:`softplot.marks.validation.rescue`) on a faint scan:
-a faint cross is judged as the first pass judges it, and its precision at its peers'
-contrast (:func:`softplot.marks.validation.at_peers`)."""
+"""The rescue of refused crosses (:func:`softplot.marks.validation.rescue`) and of crosses the
+scan's edge cuts (:func:`softplot.marks.validation.edge_crosses`) holds a refit to the measured
+crosses' precision as it stands, whatever its contrast: a fit inside a black area keeps a third
+of its peers' contrast from the area's edge, and at its peers' contrast it would pass."""
 
 from __future__ import annotations
 
-import numpy as np
 
-from softplot.marks.validation import RESCUE_MIN_GAIN, at_peers
+def test_no_cross_is_claimed_inside_a_black_block():
+    # the second renderer's scan 234: a Rollei at 824 dpi over sharp-edged blocks; R3C2 lies
+    # inside a black block (its contrast 0.0004 of the grey range, under the noise): a refit
+    # near its prediction, on the block's edge, has a third of the peers' contrast and,
+    # taken to their contrast, their precision; judged as it stands it is refused
+    from softplot.io import Scan
+    from softplot.marks import detect
+    from softplot.synthetic.plain import make_plain, score_plain
 
-
-def test_precision_is_taken_to_the_peers_contrast_within_limits():
-    g = np.array([-0.05, -0.2, -0.4, -0.8, np.nan])
-    f = at_peers(g, 0.4)
-    # half the contrast: twice the sigma, judged as the peers' half of it; never below
-    # RESCUE_MIN_GAIN (no contrast at all is no cross) and never above 1 (a stronger fit is
-    # not held to more than its peers' precision)
-    assert np.allclose(f, [0.125, 0.5, 1.0, 1.0, RESCUE_MIN_GAIN])
-    assert at_peers(g, None) == 1.0
-
-
-def test_a_faint_cross_of_a_low_contrast_scan_is_rescued_near_its_truth():
-    # the robustness sweep's seed 192: a Hasselblad at 648 dpi, contrast 0.06, 16 bit. R0C3
-    # was refused as "contrast too low" (contrast-to-noise 2.7, matched-filter
-    # signal-to-noise 8.6: a faint cross the first pass accepts among its peers); its rescue
-    # fits held no faint cross and judged its precision, 2.2-2.4 times the peers' at 0.45
-    # of their contrast, as a fit on conflicting content: 24 of 25 measured
-    from softplot.synthetic.sweep import make_case, render_case, run_case
-
-    case = make_case(192)
-    sc, det = run_case(case)
-    assert not sc.wrong and not sc.claimed and not sc.gross
-    assert sc.measured == sc.visible == 25, sc.missed
-    _, truth, _, _ = render_case(case)
-    t = next(m for m in truth["marks"] if m["name"] == "R0C3")
-    i = det.name.index("R0C3")
-    err = float(np.hypot(*(det.xy[i] - (t["x"], t["y"]))))
-    # its bound is 0.21 px: measured from three of its half-arms 0.58 px off, far from a
-    # fit on the texture (1-5 px off) and within its own reported precision
-    assert err < 0.75, err
-    e = det.xy[i] - (t["x"], t["y"])
-    z = float(np.sqrt(e @ np.linalg.solve(det.cov[i], e) / 2))
-    assert z < 2.0, z
-
-
-def test_a_dim_cross_the_scan_edge_cuts_is_measured_near_its_truth():
-    # the robustness sweep's seed 413: a Rollei at 455 dpi, JPEG q44, opacity 0.68. R8C6,
-    # cut by the scan's edge by one tip, was fitted from its other three half-arms 0.14 px
-    # from its truth (bound 0.18 px) at 0.37 of its peers' contrast, and refused: its
-    # sigma was 3.2 times the measured crosses' median (at their contrast 1.2 times)
-    from softplot.synthetic.sweep import make_case, render_case, run_case
-
-    case = make_case(413)
-    sc, det = run_case(case)
-    assert not sc.wrong and not sc.claimed and not sc.gross
-    assert not any(m.startswith("R8C6:") for m in sc.missed), sc.missed
-    _, truth, _, _ = render_case(case)
-    t = next(m for m in truth["marks"] if m["name"] == "R8C6")
-    i = det.name.index("R8C6")
-    e = det.xy[i] - (t["x"], t["y"])
-    assert float(np.hypot(*e)) < 0.4, e
-    z = float(np.sqrt(e @ np.linalg.solve(det.cov[i], e) / 2))
-    assert z < 2.0, z
+    case = make_plain(234)
+    det = detect(Scan.from_array(case.image, dpi=case.dpi), case.camera)
+    row = score_plain(case, det)
+    assert row["claimed"] == [], row["claimed"]
+    assert not row["wrong"]
+    # the scan's visible crosses are measured as before the rescue's allowance
+    assert row["measured"] >= 118, (row["measured"], row["visible"])
+    tm = {m["name"]: m for m in case.truth["marks"]}
+    assert tm["R3C2"]["state"] == "dark"
+    i = det.name.index("R3C2")
+    assert det.status[i] != "measured"

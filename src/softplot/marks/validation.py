@@ -551,8 +551,7 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
             # three clean half-arms measure a cross nearly as well as four: a fit far less
             # precise than the measured crosses lies on the conflicting content it was to
             # avoid
-            good &= np.nan_to_num(sg * at_peers(f2.gain, gain_ref), nan=np.inf) <= (
-                RESCUE_MAX_SIGMA_RATIO * s_meas)
+            good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
             if gain_ref is not None and f2.gain is not None:
                 good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
             for j in np.where(good)[0]:
@@ -561,18 +560,6 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
                 xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
                 status[i], reason[i] = "measured", ""
     return bool(np.isfinite(best).any())
-
-
-def at_peers(gain, gain_ref) -> np.ndarray | float:
-    """The factor (K,) that takes the precision of fits of contrast ``gain`` (K,) grey units to
-    the precision they would have at the peers' contrast ``gain_ref``: ``|gain| / gain_ref``
-    from :data:`RESCUE_MIN_GAIN` to 1 (1 without ``gain_ref``). A cross under a dim region
-    is as much less precise as it is less contrasted; a fit on conflicting scene content is
-    less precise at any contrast."""
-    if gain_ref is None or gain is None or not gain_ref > 0:
-        return 1.0
-    return np.clip(np.abs(np.nan_to_num(np.asarray(gain, float))) / gain_ref, RESCUE_MIN_GAIN,
-                   1.0)
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
@@ -735,7 +722,7 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     a local quadratic of the residuals), with the affine their positions predict held
     (:func:`position_affine`, else the model's) and the blur held. Accepted as the rescue
     accepts (:func:`rescue`: a faint cross as the first pass accepts it, within the outlier
-    test's threshold of the prediction, as precise at its peers' contrast, :func:`at_peers`,
+    test's threshold of the prediction, as precise as its peers,
     and as contrasted). Measured last, they feed no neighbour's prediction, model or
     variance factor; their covariance is scaled by ``vfac``. Updates ``m`` and ``arms`` in
     place; returns the indices measured."""
@@ -774,7 +761,7 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     thr = outlier_threshold(s_out, np.broadcast_to(floor_px, (len(film),))[q], sg, exp)
     thr = thr * _reach_beyond(film[q], film[meas], sigma[meas], edge[meas])
     good = f.ok & (np.hypot(*(f.xy - target).T) <= thr)
-    good &= np.nan_to_num(sg * at_peers(f.gain, gain_ref), nan=np.inf) <= (
+    good &= np.nan_to_num(sg, nan=np.inf) <= (
         RESCUE_MAX_SIGMA_RATIO * float(np.median(sigma[meas])))
     if gain_ref is not None and f.gain is not None:
         good &= np.abs(np.nan_to_num(f.gain)) >= RESCUE_MIN_GAIN * gain_ref
