@@ -391,6 +391,17 @@ def _render_noise(truth: dict, jpeg_rms: float) -> float:
     return math.sqrt(effective_noise(r["noise_sigma"], truth["bit_depth"]) ** 2 + jpeg_rms**2)
 
 
+def _visible_marks(truth: dict, jpeg_rms: float) -> tuple[float, float, list[dict], np.ndarray]:
+    """The render's pixels per mm, its white noise (:func:`_render_noise`), its visible reseau
+    crosses (truth entries, pixel system) and their pixel -> mark-frame affines (K, 2, 2),
+    :func:`_mark_affines` (empty when no cross is visible)."""
+    ppm = truth["dpi"] / 25.4
+    noise = _render_noise(truth, jpeg_rms)
+    vis = [m for m in truth["marks"] if m["kind"] == "reseau" and m["state"] == "visible"]
+    A = _mark_affines(truth, vis) if vis else np.zeros((0, 2, 2))
+    return ppm, noise, vis, A
+
+
 def _mark_affines(truth: dict, marks: list[dict]) -> np.ndarray:
     """(N, 2, 2) pixel -> mark-frame affine of each of ``marks`` (mark frame: u along film x,
     v along film -y, nominal px; from the truth mapping's Jacobian at the cross)."""
@@ -415,12 +426,9 @@ def _bounds(case: Case, truth: dict, img_grey: np.ndarray | None, jpeg_rms: floa
     from softplot.marks.template import MarkShape
 
     r = truth["render"]
-    ppm = truth["dpi"] / 25.4
-    noise = _render_noise(truth, jpeg_rms)
-    vis = [m for m in truth["marks"] if m["kind"] == "reseau" and m["state"] == "visible"]
+    ppm, noise, vis, A = _visible_marks(truth, jpeg_rms)
     if not vis:
         return {}
-    A = _mark_affines(truth, vis)
     out = {}
     groups: dict[tuple, list[int]] = {}
     for i, m in enumerate(vis):
@@ -502,12 +510,9 @@ def mark_snr(truth: dict, jpeg_rms: float = 0.0) -> dict[str, tuple[float, float
     :func:`detection_threshold` over the cross's cell (a disc of a quarter pitch around it:
     where the score takes a measurement for this cross) and over the whole scan.
     """
-    ppm = truth["dpi"] / 25.4
-    noise = _render_noise(truth, jpeg_rms)
-    vis = [m for m in truth["marks"] if m["kind"] == "reseau" and m["state"] == "visible"]
+    ppm, noise, vis, A = _visible_marks(truth, jpeg_rms)
     if not vis:
         return {}
-    A = _mark_affines(truth, vis)
     groups: dict[tuple, list[int]] = {}
     for i, m in enumerate(vis):
         key = (round(m["arm_length_mm"], 9), round(m["line_width_mm"], 9),
