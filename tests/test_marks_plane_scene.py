@@ -98,3 +98,27 @@ def test_flat_sweep_renders_come_nearer_their_bound(seed, limit, least):
     assert not sc.wrong and not sc.claimed
     assert sc.measured >= least
     assert d["rms_px"] <= limit * d["crb_px"], (d["rms_px"], d["crb_px"])
+
+
+def test_every_patch_gets_its_own_least_squares_plane():
+    # plane_scenes fits all patches at once; each plane is the least-squares plane of that
+    # patch's own pixels away from the cross (each patch its own mask), as a per-patch lstsq
+    rng = np.random.default_rng(7)
+    n, h = 12, 31
+    y, x = np.mgrid[0:h, 0:h].astype(np.float64)
+    S = (rng.normal(size=(n, 1, 1)) + rng.normal(scale=0.02, size=(n, 1, 1)) * x
+         + rng.normal(scale=0.02, size=(n, 1, 1)) * y
+         + rng.normal(scale=0.003, size=(n, h, h))).astype(np.float32)
+    stack = (S + rng.normal(scale=0.02, size=S.shape)).astype(np.float32)
+    away = np.hypot(x - h / 2, y - h / 2)[None] > rng.uniform(3, 12, size=(n, 1, 1))
+    stack[3, 0, 0] = np.nan  # a patch over the scan's edge: judged not flat
+    flat, P = plane_scenes(stack, S, away)
+    X = np.stack([np.ones(h * h), (x.ravel() - h / 2) / h, (y.ravel() - h / 2) / h], 1)
+    for i in range(n):
+        if i == 3:
+            assert not flat[i]
+            continue
+        k = away[i].ravel()
+        coef = np.linalg.lstsq(X[k], S[i].ravel()[k].astype(np.float64), rcond=None)[0]
+        assert np.allclose(P[i].ravel(), X @ coef, atol=1e-6), i
+        assert flat[i]  # a plane plus noise 0.15 of the patch's: flat

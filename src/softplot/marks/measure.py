@@ -324,17 +324,35 @@ def plane_scenes(stack: np.ndarray, S: np.ndarray, away: np.ndarray, step: float
         return flat, P
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
     X = np.stack([np.ones(h * w), (x.ravel() - w / 2) / w, (y.ravel() - h / 2) / h], 1)
-    fin = np.isfinite(stack).reshape(n, -1).all(1)
-    for i in np.where(fin & (away.reshape(n, -1).sum(1) >= 3 * X.shape[1]))[0]:
-        k = away[i].ravel()
-        si = S[i].ravel().astype(np.float64)
-        coef = np.linalg.lstsq(X[k], si[k], rcond=None)[0]
-        plane = X @ coef
-        noise = 1.4826 * np.median(np.abs(stack[i].ravel()[k] - si[k]))
-        dev = np.sqrt(np.mean((si[k] - plane[k]) ** 2))
-        flat[i] = dev <= max(gate * noise, step)
-        P[i] = plane.reshape(h, w)
+    k = away.reshape(n, -1)
+    ok = np.isfinite(stack).reshape(n, -1).all(1) & (k.sum(1) >= 3 * X.shape[1])
+    if not ok.any():
+        return flat, P
+    # every patch's least-squares plane over its own pixels at once: the normal equations
+    # (3 x 3 each; the design's columns are centred and scaled, so well conditioned)
+    k = k[ok]
+    Wk = k.astype(np.float64)
+    si = S[ok].reshape(len(k), -1).astype(np.float64)
+    G = np.einsum("np,pi,pj->nij", Wk, X, X)
+    coef = np.linalg.solve(G, np.einsum("np,pi,np->ni", Wk, X, si)[..., None])[..., 0]
+    plane = coef @ X.T  # (n_ok, h * w)
+    res = np.where(k, np.abs(stack[ok].reshape(len(k), -1) - si), np.nan)
+    noise = 1.4826 * np.nanmedian(res, axis=1)
+    dev = np.sqrt(np.sum(np.where(k, si - plane, 0.0) ** 2, 1) / k.sum(1))
+    flat[ok] = dev <= np.maximum(gate * noise, step)
+    P[ok] = plane.reshape(-1, h, w)
     return flat, P
+
+
+def _away_from_centre(origin, c0, A0, shape, s0, init_err, stack_shape) -> np.ndarray:
+    """The pixels (N, h, w) bool of patches cut at ``origin`` around the crosses ``c0``
+    (pixel system; affines ``A0``) beyond ``width / 2 + 3 s0 + init_err + 1`` px of the
+    cross's centre, where :func:`plane_scenes` judges the opening: nearer, the blurred bars
+    meet and the opening cannot close them; along and beside the bars it removes them, and a
+    scene line there is seen."""
+    A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
+    u, v = patch_frame(origin, c0, A, stack_shape)
+    return np.hypot(u, v) > 0.5 * shape.width + 3.0 * s0 + init_err + 1.0
 
 
 def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=None,
@@ -405,13 +423,9 @@ def _fit(scan, shape, c0, A0, s0, init_err, sign, fit_shape, scene, drop_part=No
 
 def _flat_to_plane(stack, origin, c0, A0, shape, s0, init_err, bg, wt, step):
     """The scene estimate ``bg`` and prior weights ``wt`` (N, h, w, patch pixel system) with
-    every flat patch's (:func:`plane_scenes`, judged away from the cross's centre: beyond
-    ``width / 2 + 3 s0 + init_err + 1`` px of it, where the blurred bars meet and the opening
-    cannot close them; along and beside the bars it removes them, and a scene line there is
-    seen; ``step`` the scan's grey step) replaced by its plane and unit weights."""
-    A = np.broadcast_to(np.asarray(A0, float), (len(c0), 2, 2))
-    u, v = patch_frame(origin, c0, A, stack.shape)
-    away = np.hypot(u, v) > 0.5 * shape.width + 3.0 * s0 + init_err + 1.0
+    every flat patch's (:func:`plane_scenes`, judged :func:`_away_from_centre`; ``step`` the
+    scan's grey step) replaced by its plane and unit weights."""
+    away = _away_from_centre(origin, c0, A0, shape, s0, init_err, stack.shape)
     flat, P = plane_scenes(stack, bg, away, step)
     if flat.any():
         bg = bg.copy()
@@ -492,8 +506,7 @@ def flat_scan(scan, shape, c0, A0, s0, init_err, sign) -> bool:
         bg, _, grad = scene_background(stack, shape, s0, sign)
         if grad is None:
             return False
-        u, v = patch_frame(origin, c, A, stack.shape)
-        away = np.hypot(u, v) > 0.5 * shape.width + 3.0 * s0 + init_err + 1.0
+        away = _away_from_centre(origin, c, A, shape, s0, init_err, stack.shape)
         rough += int((~plane_scenes(stack, bg, away, 1.0 / scan.full_scale)[0]).sum())
         if rough > (1.0 - PLANE_SHARE) * n:
             return False
