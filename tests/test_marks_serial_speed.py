@@ -158,3 +158,67 @@ def test_patches_are_nan_exactly_off_the_scan():
             on = (xs >= 0) & (xs < 120) & (ys >= 0) & (ys < 90)
             assert np.isnan(w[~on]).all()
             assert np.array_equal(w[on], g[ys[on], xs[on]])
+
+
+def _cross_grid_scan(rough=(), side=6, pitch=64, seed=0):
+    """An 8-bit scan (pixel system) of ``side`` x ``side`` dark crosses (length 24, width
+    1.2 px, blur 1 px) every ``pitch`` px over a flat grey with noise; the crosses ``rough``
+    (row-major indices) over a strong texture (a period of 40 px). Returns the scan, the
+    crosses' centres (N, 2) and their shape."""
+    from softplot.io import Scan
+    from softplot.marks.template import MarkShape, render
+
+    shape = MarkShape("cross", length=24.0, width=1.2)
+    rng = np.random.default_rng(seed)
+    size = side * pitch
+    img = 180.0 + rng.normal(0.0, 2.0, (size, size))
+    half = 20
+    mark = render(shape, 1.0, half=half)
+    y, x = np.mgrid[0 : 2 * half + 1, 0 : 2 * half + 1]
+    tex = 40.0 * np.sin(2 * np.pi * x / 40.0) * np.cos(2 * np.pi * y / 40.0)
+    c = []
+    for i in range(side * side):
+        cx, cy = pitch // 2 + pitch * (i % side), pitch // 2 + pitch * (i // side)
+        win = img[cy - half : cy + half + 1, cx - half : cx + half + 1]
+        if i in rough:
+            win += tex
+        win -= 120.0 * mark
+        c.append((cx, cy))
+    sc = Scan.from_array(np.clip(img, 0, 255).astype(np.uint8), dpi=1200.0)
+    return sc, np.array(c, float), shape
+
+
+@pytest.mark.parametrize("rough", [(), (0,), (3,), (5,), (17,), (35,), (2, 30)])
+def test_flat_scan_judges_as_all_patches_at_once_and_stops_at_the_first_rough(rough,
+                                                                               monkeypatch):
+    """flat_scan's verdict is that of every patch judged at once (each patch's opening and
+    plane are its own); its chunks start small and grow, so on a busy scan the first rough
+    patch ends the test after a few openings (a first chunk of 32 computed 32)."""
+    from softplot.marks import measure
+
+    sc, c0, shape = _cross_grid_scan(rough)
+    A0 = np.broadcast_to(np.eye(2), (len(c0), 2, 2))
+    s0, init_err, sign = 1.0, 0.5, -1
+    stack, origin = measure.patches(sc, c0, measure._half(shape, A0, s0, init_err))
+    bg, _, _ = measure.scene_background(stack, shape, s0, sign)
+    away = measure._away_from_centre(origin, c0, A0, shape, s0, init_err, stack.shape)
+    flat = measure.plane_scenes(stack, bg, away, 1.0 / sc.full_scale)[0]
+    assert np.array_equal(~flat, np.isin(np.arange(len(c0)), rough))  # the scan as drawn
+    read = []
+    real = measure.patches
+
+    def spy(scan, centres, half):
+        read.append(len(centres))
+        return real(scan, centres, half)
+
+    monkeypatch.setattr(measure, "patches", spy)
+    assert measure.flat_scan(sc, shape, c0, A0, s0, init_err, sign) == (not rough)
+    first = min(rough, default=len(c0))
+    chunks = measure._growing_chunks(len(c0))
+    assert [m - k for k, m in chunks][:3] == [measure.FLAT_CHUNK_MIN, 8, 16]
+    assert chunks[0][0] == 0 and chunks[-1][1] == len(c0)
+    assert all(a[1] == b[0] for a, b in zip(chunks[:-1], chunks[1:], strict=True))
+    # the patches read: those of the chunks up to the one holding the first rough patch
+    assert sum(read) == (next(m for _, m in chunks if m > first) if rough else len(c0))
+    if rough and first < measure.FLAT_CHUNK_MIN:
+        assert read == [measure.FLAT_CHUNK_MIN]

@@ -499,10 +499,11 @@ def flat_scan(scan, shape, c0, A0, s0, init_err, sign) -> bool:
             or shape.length < PLANE_MIN_LENGTH * s0):
         return False
     rough = 0
-    for k in range(0, n, 32):  # in chunks: bounded memory, and a busy scan stops early
-        c = c0[k : k + 32]
-        A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))[k : k + 32]
-        stack, origin = patches(scan, c, _half(shape, A0, s0, init_err))
+    half = _half(shape, A0, s0, init_err)
+    for k, m in _growing_chunks(n):  # bounded memory, and a busy scan stops early
+        c = c0[k:m]
+        A = np.broadcast_to(np.asarray(A0, float), (n, 2, 2))[k:m]
+        stack, origin = patches(scan, c, half)
         bg, _, grad = scene_background(stack, shape, s0, sign)
         if grad is None:
             return False
@@ -514,6 +515,25 @@ def flat_scan(scan, shape, c0, A0, s0, init_err, sign) -> bool:
     if used is not None:
         used.append(True)
     return True
+
+
+#: :func:`flat_scan` judges the patches in chunks that start at this many and double up to
+#: :data:`FLAT_CHUNK_MAX`: each patch is judged on its own (its opening and plane), so the
+#: chunks decide nothing; on a busy scan the first rough patch ends the test, mostly in the
+#: first chunk (a first chunk of 32 computed 28 openings and planes too many)
+FLAT_CHUNK_MIN = 4
+FLAT_CHUNK_MAX = 32
+
+
+def _growing_chunks(n: int) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` covering ``range(n)``: :data:`FLAT_CHUNK_MIN` marks first, each
+    next chunk twice the last, at most :data:`FLAT_CHUNK_MAX`."""
+    out, k, size = [], 0, FLAT_CHUNK_MIN
+    while k < n:
+        out.append((k, min(k + size, n)))
+        k += size
+        size = min(2 * size, FLAT_CHUNK_MAX)
+    return out
 
 
 def _footprint_gradient(grad, origin, c0, A0, shape, s0):
