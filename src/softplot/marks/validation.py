@@ -6,7 +6,10 @@ more than a robust threshold, or by more than :data:`OUTLIER_K` times what its o
 the prediction's error lead one to expect (:func:`departure_model`), is "rejected"
 (:func:`reject_outliers`); rejected and refused crosses are fitted again from the neighbours'
 prediction, once without each half-arm (:func:`rescue`), and, failing that, as a lone bar
-(:func:`lone_arms`); crosses the scan's edge cuts by one tip are measured last from their
+(:func:`lone_arms`); a measured cross that departs from its neighbours' prediction far more
+than its peers do, but passed the test by its own imprecision, is fitted again in the same
+way and the refit kept where it lies much nearer the prediction (:func:`second_look`);
+crosses the scan's edge cuts by one tip are measured last from their
 other three half-arms (:func:`edge_crosses`). Fiducials, too few for a neighbourhood, are
 tested against the pattern's model (:func:`validate_pattern`). The hand-over is
 :class:`Validation`; the orchestrator refuses a scan whose measured crosses lie farther than
@@ -34,7 +37,8 @@ from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "lone_arms", "edge_crosses", "edge_cut_part", "extrapolation",
+           "rescue", "second_look", "SECOND_LOOK_SPREAD", "lone_arms", "edge_crosses",
+           "edge_cut_part", "extrapolation",
            "prediction_reach", "h_parameter_jacobian", "similar_four", "SIMILAR_TOL_MM",
            "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
@@ -62,6 +66,11 @@ OUTLIER_K = 2.75
 #: the outlier test's floor grows at most this many times where a mark's neighbours'
 #: prediction extrapolates further than is typical (:func:`extrapolation`)
 EXTRAPOLATION_MAX = 2.0
+#: a measured cross departing from its neighbours' prediction by more than this many times
+#: the measured crosses' robust spread (:func:`robust_spread`, 1.4826 x the median of the
+#: distances: about 1.74 standard deviations of one coordinate, so 1.5 is about 2.6 of them)
+#: is fitted again without each half-arm (:func:`second_look`)
+SECOND_LOOK_SPREAD = 1.5
 #: a cross measured again (:func:`rescue`) has at least this share of the measured crosses'
 #: median contrast (crosses under a 30 % dark region keep 0.3 of it)
 RESCUE_MIN_GAIN = 0.1
@@ -154,6 +163,12 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
         sigma = m.sigma()
         Hm, residual, rms, _ = reject_outliers(film, xy, status, reason, Hm, sigma,
                                                floor_px=floor_px)
+    if second_look(scan, shape, film, xy, (cov, cov_w), status, Hm, sigma, floor_px, A_fit,
+                   pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm,
+                   scene_tv=m.scene_tv, blur=held_blur(fine),
+                   gain_ref=peer_gain(fine, least=1)).size:
+        sigma = m.sigma()
+        Hm, residual, rms = global_model(film, xy, status, Hm)
     if len(reinstate(film, xy, status, reason, floor_px, Hm)):
         Hm, residual, rms = global_model(film, xy, status, Hm)
     arms = np.where(np.array(status) == "measured", 2, 0)
@@ -521,25 +536,10 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
     s_out = float(spread[edge[meas]][0]) if edge[meas].any() else s_in
     sp_rej = np.where(edge[rej], s_out, s_in)
     target = grid.apply_h(Hm, film[rej]) + pred[meas.size :]
-    held, lev = position_affine(film, xy, st == "measured", ppm)
-    # held where the neighbours surround the cross; at the grid's corners the prediction is
-    # an extrapolation (variance factor tens of times the typical one): free there
-    hold = np.isfinite(held[rej]).all((1, 2)) & (lev[rej] <= 4.0 * np.nanmedian(lev[meas]))
     best = np.full(rej.size, -np.inf)
-    for grp, fit_shape in ((np.where(hold)[0], False), (np.where(~hold)[0], True)):
-        if grp.size == 0:
-            continue
-        Ag = A[rej[grp]] if fit_shape else held[rej[grp]]
-
-        # the four fits are independent: one call measures them as four calls would, in
-        # common fits where the blur is held (measure's per-mark drop_part); merged in order
-        m = grp.size
-        f4 = measure(sc, shape, np.tile(target[grp], (4, 1)), np.tile(Ag, (4, 1, 1)), s0,
-                     init_err, sign, rules, anchor=np.tile(target[grp], (4, 1)),
-                     max_shift=max_shift, drop_part=np.repeat(np.arange(4), m),
-                     fit_shape=fit_shape, scene_tv=scene_tv, blur=blur, gain_ref=gain_ref)
-        for k in range(4):
-            f2 = f4.rows(slice(k * m, (k + 1) * m))
+    for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, rej):
+        for f2 in _three_arm_fits(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
+                                  max_shift, fit_shape, scene_tv, blur, gain_ref):
             sg = f2.sigma
             sp = sp_rej[grp]
             fl = floor_px[rej[grp]]
@@ -551,15 +551,106 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
             # three clean half-arms measure a cross nearly as well as four: a fit far less
             # precise than the measured crosses lies on the conflicting content it was to
             # avoid
-            good &= np.nan_to_num(sg, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
-            if gain_ref is not None and f2.gain is not None:
-                good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
+            good &= _rescue_like(f2, s_meas, gain_ref)
             for j in np.where(good)[0]:
                 i = rej[grp[j]]
                 best[grp[j]] = f2.score[j]
                 xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
                 status[i], reason[i] = "measured", ""
     return bool(np.isfinite(best).any())
+
+
+def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, init_err,
+                sign, rules, max_shift, ppm, *, scene_tv=0, blur=None, gain_ref=None):
+    """Measure again, from their neighbours' prediction, the crosses that passed the outlier
+    test by their own imprecision: a fit locked onto a road or a line of the scene beside an
+    arm lies 1-4 px off its truth with a sigma of 0.3-3 px, which the outlier test's
+    ``4 sigma`` lets through, while its neighbours' prediction is good to 0.1-0.5 px.
+
+    A measured cross departing from its neighbours' prediction by more than
+    :data:`SECOND_LOOK_SPREAD` times the robust spread of the measured crosses' departures
+    (:func:`robust_spread`, about 2.6 standard deviations of them) and the outlier test's
+    floor ``floor_px`` (px, (M,)) is fitted again from the prediction four times, each time
+    without one half-arm (as :func:`rescue` fits, the affine the neighbours predict held, the
+    blur held at ``blur``). The best-correlated refit that passes the acceptance tests, is as
+    precise as :func:`rescue` requires and lies within that reach of the prediction, and at
+    most half as far from it as the first fit, replaces the first fit: three half-arms clear
+    of the scene content measure the cross, where the first fit took the content for an arm.
+    ``film`` (M, 2) mm; ``xy`` (M, 2) pixel system; ``cov`` the reported and the
+    independent-pixel covariances (M, 2, 2) px^2 each; ``sigma`` (M,) px the independent-pixel
+    precision; ``A`` (M, 2, 2) the fitted affines (pixel -> mark frame); ``Hm`` (3, 3) the
+    global model film mm -> pixel. Modifies ``xy`` and ``cov`` in place; returns the indices
+    measured again."""
+    st = np.array(status)
+    meas = np.where(st == "measured")[0]
+    if meas.size < 8:
+        return meas[:0]
+    r = xy - grid.apply_h(Hm, film)
+    pred = local_prediction(film[meas], r[meas], sigma=sigma[meas])
+    edge = outline(film, st == "measured")
+    dev = np.hypot(*(r[meas] - pred).T)
+    reach = np.maximum(SECOND_LOOK_SPREAD * robust_spread(dev, edge[meas]),
+                       np.broadcast_to(floor_px, (len(film),))[meas])
+    sel = dev > reach
+    if not sel.any():
+        return meas[:0]
+    cand, dev, reach = meas[sel], dev[sel], reach[sel]
+    target = grid.apply_h(Hm, film[cand]) + pred[sel]
+    s_meas = float(np.median(sigma[meas]))
+    best = np.full(cand.size, -np.inf)
+    for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, cand):
+        for f2 in _three_arm_fits(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
+                                  max_shift, fit_shape, scene_tv, blur, gain_ref):
+            d = np.hypot(*(f2.xy - target[grp]).T)
+            good = (f2.ok & (d <= reach[grp]) & (d <= 0.5 * dev[grp])
+                    & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
+                    & _rescue_like(f2, s_meas, gain_ref))
+            for j in np.where(good)[0]:
+                i = cand[grp[j]]
+                best[grp[j]] = f2.score[j]
+                xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
+    return cand[np.isfinite(best)]
+
+
+def _held_groups(film, xy, ok, ppm, A, ids):
+    """The crosses ``ids`` in two groups, each ``(positions in ids, affines, fit_shape)``:
+    those whose neighbours surround them, with the affine the neighbours' positions predict
+    held (:func:`position_affine`), and the others (at the grid's corners the prediction
+    extrapolates, its variance tens of times the typical), free from ``A`` (M, 2, 2);
+    ``ok`` (M,) bool the measured crosses; groups without a cross left out."""
+    held, lev = position_affine(film, xy, ok, ppm)
+    hold = (np.isfinite(held[ids]).all((1, 2))
+            & (lev[ids] <= 4.0 * np.nanmedian(lev[np.asarray(ok, bool)])))
+    out = []
+    for grp, fit_shape in ((np.where(hold)[0], False), (np.where(~hold)[0], True)):
+        if grp.size:
+            out.append((grp, A[ids[grp]] if fit_shape else held[ids[grp]], fit_shape))
+    return out
+
+
+def _three_arm_fits(sc, shape, target, Ag, s0, init_err, sign, rules, max_shift, fit_shape,
+                    scene_tv, blur, gain_ref):
+    """The crosses at ``target`` (m, 2) pixel system (affines ``Ag`` (m, 2, 2)) fitted four
+    times, each time without one half-arm (0: +u, 1: +v, 2: -u, 3: -v), anchored at
+    ``target``: one call of :func:`measure`, as four calls would; a list of four
+    :class:`~softplot.marks.measure.Fine` of m rows each."""
+    m = len(target)
+    f4 = measure(sc, shape, np.tile(target, (4, 1)), np.tile(Ag, (4, 1, 1)), s0, init_err,
+                 sign, rules, anchor=np.tile(target, (4, 1)), max_shift=max_shift,
+                 drop_part=np.repeat(np.arange(4), m), fit_shape=fit_shape,
+                 scene_tv=scene_tv, blur=blur, gain_ref=gain_ref)
+    return [f4.rows(slice(k * m, (k + 1) * m)) for k in range(4)]
+
+
+def _rescue_like(f2, s_meas, gain_ref):
+    """Refits (a :class:`~softplot.marks.measure.Fine`) as precise as :func:`rescue` asks
+    (independent-pixel sigma at most :data:`RESCUE_MAX_SIGMA_RATIO` times the measured
+    crosses' median ``s_meas`` px) and, with ``gain_ref``, of at least
+    :data:`RESCUE_MIN_GAIN` of the crosses' contrast (bool per row)."""
+    good = np.nan_to_num(f2.sigma, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
+    if gain_ref is not None and f2.gain is not None:
+        good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
+    return good
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
