@@ -15,7 +15,8 @@ _POOL = None
 _POOL_LOCK = threading.Lock()
 _IN_POOL = threading.local()
 
-__all__ = ["tune_allocator", "set_threads", "threads", "thread_map", "concurrent"]
+__all__ = ["tune_allocator", "set_threads", "threads", "thread_map", "concurrent", "share",
+           "idle_threads"]
 
 
 def set_threads(n: int | None) -> None:
@@ -59,10 +60,52 @@ def _run_marked(fn, x):
         _IN_POOL.active = False
 
 
+#: items submitted to the pool and not done yet (queued or running; :func:`_submit`)
+_PENDING = 0
+_PENDING_LOCK = threading.Lock()
+
+
+def _done(_future) -> None:
+    global _PENDING
+    with _PENDING_LOCK:
+        _PENDING -= 1
+
+
+def _pool():
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _POOL = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="softplot")
+        return _POOL
+
+
+def _submit(pool, fn, x):
+    """``fn(x)`` submitted to the pool, counted in :data:`_PENDING` until it is done (or
+    cancelled)."""
+    global _PENDING
+    with _PENDING_LOCK:
+        _PENDING += 1
+    fut = pool.submit(_run_marked, fn, x)
+    fut.add_done_callback(_done)
+    return fut
+
+
 def concurrent() -> bool:
     """Whether :func:`thread_map` runs its items on several threads here: more than one
     thread, and not called from one of its own pool threads (where it runs sequentially)."""
     return threads() > 1 and not getattr(_IN_POOL, "active", False)
+
+
+def idle_threads() -> int:
+    """How many pool threads have nothing to do now (nothing queued): what :func:`share`
+    may hand work to. 0 on one thread."""
+    n = threads()
+    if n <= 1:
+        return 0
+    with _PENDING_LOCK:
+        return max(n - _PENDING, 0)
 
 
 def thread_map(fn, items) -> list:
@@ -78,14 +121,37 @@ def thread_map(fn, items) -> list:
     items = list(items)
     if len(items) <= 1 or not concurrent():
         return [fn(x) for x in items]
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None:
-            from concurrent.futures import ThreadPoolExecutor
+    pool = _pool()
+    futs = [_submit(pool, fn, x) for x in items]
+    try:
+        return [f.result() for f in futs]
+    finally:
+        for f in futs:  # after an exception: the items not started are not run
+            f.cancel()
 
-            _POOL = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="softplot")
-        pool = _POOL
-    return list(pool.map(lambda x: _run_marked(fn, x), items))
+
+def share(fn, items) -> list:
+    """``[fn(x) for x in items]``, the items after the first offered to the pool threads that
+    are idle now (:func:`idle_threads`), also from inside a pool thread: the caller runs the
+    first item, then every offered one no thread has started (and those not offered), and
+    waits for the others. For work whose result does not depend on the thread it runs on or
+    on the other items (e.g. independent patches of a compiled kernel): the results are those
+    of the loop, to the last bit, however the items were shared. Deadlock-free: the caller
+    waits only for items already running. The first exception is raised in the caller."""
+    items = list(items)
+    k = min(len(items) - 1, idle_threads())
+    if k <= 0:
+        return [fn(x) for x in items]
+    pool = _pool()
+    futs = [_submit(pool, fn, x) for x in items[1 : 1 + k]]
+    try:
+        out = [fn(items[0])]
+        for f, x in zip(futs, items[1 : 1 + k], strict=True):
+            out.append(fn(x) if f.cancel() else f.result())
+    finally:
+        for f in futs:
+            f.cancel()
+    return out + [fn(x) for x in items[1 + k :]]
 
 
 def tune_allocator() -> None:

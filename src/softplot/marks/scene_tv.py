@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import correlate1d
 
+from softplot import runtime
 from softplot.marks import kernels
 
 __all__ = ["gauss_taps", "deconv_tv", "iterations", "ITERATIONS", "MU"]
@@ -600,6 +601,30 @@ def band_rows(T: np.ndarray, band_px: float) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+#: :func:`deconv_tv` shares its patches with an idle thread from this many on
+#: (:func:`_whole_patches`)
+SHARE_MIN = 2
+
+
+def _whole_patches(g, T, m, B0, mu, k, iters, out, xout) -> None:
+    """The compiled solve (:func:`_kernel`) of the N patches (pixel system, float32,
+    C-contiguous), into ``out`` and ``xout``: in two halves where a thread of the process is
+    idle (:func:`softplot.runtime.share`; e.g. the last chunk of crosses refitted while the
+    other chunks are done). Each patch is solved on its own, from its own arrays (the kernel's
+    work rows are set afresh for every patch), so the halves give the whole's values to the
+    last bit."""
+    n = len(g)
+    tau, sig = np.float32(TAU), np.float32(SIGMA)
+
+    def solve(s):
+        _kernel(g[s], T[s], m[s], B0[s], mu[s], k, iters, tau, sig, out[s], xout[s])
+
+    if n < SHARE_MIN or not runtime.idle_threads():
+        solve(slice(None))
+        return
+    runtime.share(solve, [slice(0, n // 2), slice(n // 2, n)])
+
+
 def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
               mu: np.ndarray, s_e: float, iters: int | None = None,
               compiled: bool | None = None, band_px: float | None = None) -> np.ndarray:
@@ -649,8 +674,7 @@ def deconv_tv(g: np.ndarray, T: np.ndarray, level: np.ndarray, B0: np.ndarray,
     xout = np.empty_like(g)
     try:
         if band is None:
-            _kernel(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA), out,
-                    xout)
+            _whole_patches(g, T, m, B0, mu, k, int(iters), out, xout)
         else:
             _kernel_band(g, T, m, B0, mu, k, int(iters), np.float32(TAU), np.float32(SIGMA),
                          band[0], band[1], out, xout)
