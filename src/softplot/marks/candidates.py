@@ -12,6 +12,8 @@ Marks searched each in its own window (fiducials: :func:`window_candidates`) han
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -23,7 +25,8 @@ from softplot.marks.overview import ReseauOverview
 from softplot.marks.template import MarkShape, cross_shape
 from softplot.runtime import thread_map
 
-__all__ = ["Candidates", "reseau_candidates", "crosses_in", "arm_evidence", "arm_scored",
+__all__ = ["Candidates", "reseau_candidates", "scene_removed", "removing_scene",
+           "sign_map", "crosses_in", "arm_evidence", "arm_scored",
            "peaks_kept", "search_map",
            "WindowCandidates", "window_candidates", "ARM_POOL", "ARM_TURNS"]
 
@@ -52,6 +55,9 @@ class Candidates:
         most ``upper`` (its NCC peaks' own), below every bound in ``bound``; ``score()``
         scores it (:meth:`take`). A lattice search that cannot use it (a fit already beats
         ``upper``) never does.
+    maps : dict
+        Sign -> the NCC map of that sign's own (same shape and offset as ``ncc``), where the
+        signs were correlated apart (:func:`scene_removed`); empty: ``ncc`` serves both.
     """
 
     ncc: np.ndarray
@@ -60,6 +66,12 @@ class Candidates:
     bound: dict
     template: MarkShape
     deferred: dict = field(default_factory=dict)
+    maps: dict = field(default_factory=dict)
+
+    def ncc_of(self, sg: int) -> np.ndarray:
+        """The NCC map the peaks of sign ``sg`` come from (overview pixel system offset by
+        :attr:`half`)."""
+        return self.maps.get(sg, self.ncc)
 
     def take(self, sg: int) -> bool:
         """Score the deferred sign ``sg`` by its arms now: its peaks and bound join
@@ -103,14 +115,22 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
     shape_ov = cross_shape(camera, px_per_mm / f)
     s_ov = float(np.hypot(s_full / f, 0.5))
     arm_half = min(0.5 * shape_ov.length, max(6.0, 3.0 * shape_ov.width))
-    R, h = coarse.ncc_map(ov.image, shape_ov, s_ov, arm_half=arm_half)
+    maps = {}
+    if _SCENE_REMOVED.get():
+        # each sign correlated with the scene taken away for it (:func:`sign_map`)
+        for sg in polarity_signs(polarity):
+            maps[sg], h = sign_map(ov.image, shape_ov, s_ov, sg, arm_half=arm_half)
+        R = maps[polarity_signs(polarity)[0]]
+    else:
+        R, h = coarse.ncc_map(ov.image, shape_ov, s_ov, arm_half=arm_half)
     noise_floor = 2e-3
     pitch_ov = min(res.pitch_x, res.pitch_y) * px_per_mm / f
     # the crosses the scan can hold at most (a part of the grid shows fewer than the
     # certificate's): the number of candidates kept and the polarity's bound follow it
     n_in = crosses_in(scan, res, px_per_mm)
     keep = peaks_kept(n_in)
-    raw = {sg: coarse.find_peaks(R, h, min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
+    raw = {sg: coarse.find_peaks(maps.get(sg, R), h,
+                                 min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                  threshold=0.2, max_peaks=ARM_POOL * keep, sign=sg,
                                  image=ov.image, std_half=max(int(arm_half), 2),
                                  min_contrast=noise_floor)
@@ -140,7 +160,41 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
         if g is not None:
             peaks[sg], bound[sg] = g
     return Candidates(ncc=R, half=h, peaks=peaks, bound=bound, template=shape_ov,
-                      deferred=deferred)
+                      deferred=deferred, maps=maps)
+
+
+_SCENE_REMOVED = contextvars.ContextVar("scene_removed", default=False)
+
+
+@contextlib.contextmanager
+def scene_removed():
+    """Within this context the crosses' candidates (:func:`reseau_candidates`, and the
+    turned template's, :func:`softplot.marks.lattice.turn_template`) come from the NCC of
+    each sign with the scene taken away (:func:`sign_map`): the detector's second try on a
+    scan where the plain correlation found no reseau."""
+    token = _SCENE_REMOVED.set(True)
+    try:
+        yield
+    finally:
+        _SCENE_REMOVED.reset(token)
+
+
+def removing_scene() -> bool:
+    """Whether :func:`scene_removed` is in force."""
+    return _SCENE_REMOVED.get()
+
+
+def sign_map(image, shape: MarkShape, s: float, sign: int, A=None,
+             arm_half: float | None = None) -> tuple[np.ndarray, int]:
+    """:func:`softplot.marks.coarse.ncc_map` (``R``, ``h``) of the part of ``image``
+    (overview pixel system) narrower than the template's blurred line, of the polarity
+    ``sign`` (:func:`softplot.marks.coarse.top_hat` with a disc of radius ``width + 2 s``,
+    ``shape`` and ``s`` at the image's scale): over a busy scene the plain NCC of a
+    cross is low where the scene's own edges and regions fill its window (a render's crosses
+    of contrast 0.45 correlated 0.06-0.35 there), with them taken away 0.4-0.8. Only the
+    sign's own extremes mean anything in ``R``."""
+    img = coarse.top_hat(image, sign, shape.width + 2.0 * s)
+    return coarse.ncc_map(img, shape, s, A=A, arm_half=arm_half)
 
 
 #: NCC peaks gathered per peak kept: the ones kept are those whose arms show best

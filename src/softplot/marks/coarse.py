@@ -20,7 +20,7 @@ from softplot.marks.template import MarkShape, render
 from softplot.runtime import thread_map
 
 __all__ = ["overview", "overview_compact", "Overview", "ov_to_full", "full_to_ov", "ncc_map",
-           "find_peaks", "Peaks", "local_std"]
+           "find_peaks", "Peaks", "local_std", "top_hat"]
 
 #: bytes of native scan rows reduced at a time by :func:`overview`
 _STRIP_BYTES = 1 << 21
@@ -254,6 +254,19 @@ def ncc_map(image: np.ndarray, shape: MarkShape, s: float, A=None,
 
     thread_map(strip, range(0, R.shape[0], step))
     return R, h
+
+
+def top_hat(image, sign: int, radius: float) -> np.ndarray:
+    """What of ``image`` (grey, (H, W) ndarray or :class:`Overview`; its pixel system) is
+    narrower than a disc of ``radius`` px, of the polarity ``sign``: for +1 (bright marks)
+    the image less its grey opening, for -1 (dark marks) less its grey closing, as float32
+    of the image's shape. A cross's lines, narrower than the disc, stay whole; the scene's
+    regions, edges and gradients wider than it go (0 there)."""
+    g = image[:, :] if isinstance(image, Overview) else np.asarray(image, np.float32)
+    r = max(int(np.ceil(radius)), 1)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    op = cv2.MORPH_OPEN if sign > 0 else cv2.MORPH_CLOSE
+    return np.subtract(g, cv2.morphologyEx(g, op, k), dtype=np.float32)
 
 
 def local_std(image: np.ndarray, half: int) -> np.ndarray:

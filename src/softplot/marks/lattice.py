@@ -23,8 +23,10 @@ from softplot.marks.candidates import (
     arm_scored,
     crosses_in,
     peaks_kept,
+    removing_scene,
     reseau_candidates,
     search_map,
+    sign_map,
 )
 from softplot.marks.common import MM_PER_INCH, DetectionError, polarity_signs
 from softplot.marks.overview import ReseauOverview, reseau_overview
@@ -320,7 +322,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
     for sg in polarity_signs(polarity):  # the best score wins, the first polarity on a tie
         g, pk, _ = fits.get(sg, (None, None, None))
         if g is not None and (best is None or _rank(g, res, n_in) > _rank(best.grid, res, n_in)):
-            best = Lattice(grid=g, sign=sg, peaks=pk, ncc=cands.ncc, half=cands.half,
+            best = Lattice(grid=g, sign=sg, peaks=pk, ncc=cands.ncc_of(sg), half=cands.half,
                            factor=f, densified=sg in dense)
     return best
 
@@ -469,7 +471,7 @@ def _densified(g, pk, sign, cands: Candidates, ov: ReseauOverview, res, fit):
         if len(film) == 0:
             break
         at = np.column_stack([film, np.ones(len(film))]) @ sol
-        pos, val = search_map(cands.ncc, cands.half, sign, at,
+        pos, val = search_map(cands.ncc_of(sign), cands.half, sign, at,
                               max(2.0, NODE_SEARCH_MM * ov.px_per_mm / f))
         # no arm evidence asked: a cross at a node of the lattice often has one arm over
         # the scene's lines (the full-resolution fit decides)
@@ -517,7 +519,10 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
     shape_ov = cross_shape(camera, ppm / f)
     s_ov = float(np.hypot(blur_px / f, 0.5))
     arm_half = min(0.5 * shape_ov.length, 10.0)
-    R2, h2 = coarse.ncc_map(ov.image, shape_ov, s_ov, A=A_ov, arm_half=arm_half)
+    if removing_scene():
+        R2, h2 = sign_map(ov.image, shape_ov, s_ov, lat.sign, A=A_ov, arm_half=arm_half)
+    else:
+        R2, h2 = coarse.ncc_map(ov.image, shape_ov, s_ov, A=A_ov, arm_half=arm_half)
     n_in = crosses_in(scan, res, ppm)
     pk2 = coarse.find_peaks(R2, h2, min_dist=max(2.0, min(0.35 * res.pitch_x * ppm / f,
                                                           0.5 * shape_ov.length)),
