@@ -815,17 +815,36 @@ def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol,
     mark's last step) and ``converged`` in place. Returns ``(last_it, fail)`` (N,) int: the
     last step taken (0: none) and, where a pivot vanished, the step to be taken again by
     NumPy (else -1)."""
+    from softplot import runtime
+
     n = len(p)
     last_it = np.zeros(n, np.int64)
     fail = np.full(n, -1, np.int64)
     c = np.ascontiguousarray
     X, Y, G, valid, S, Wp, Qs, Cc = (c(a) for a in data)
     L = last
-    _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, c(active, np.bool_), _f4(length), _f4(width),
-          bool(robust), c(rows, np.int64), int(it0), int(max_iter), float(tol), float(conv),
-          L["M"], L["T"], L["Tu"], L["Tv"], L["u"], L["v"], L["r"], L["w_rob"], L["w"],
-          L["cov"], L["s0sq"], L["h"], converged, last_it, fail)
+    act = c(active, np.bool_)
+    rows = c(rows, np.int64)
+
+    def run(rw):
+        _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, act, _f4(length), _f4(width), bool(robust),
+              rw, int(it0), int(max_iter), float(tol), float(conv), L["M"], L["T"], L["Tu"],
+              L["Tv"], L["u"], L["v"], L["r"], L["w_rob"], L["w"], L["cov"], L["s0sq"],
+              L["h"], converged, last_it, fail)
+
+    # each mark steps alone over its own row of the gathered arrays (its buffers, its sums
+    # over its own pixels) and writes only its own rows: the marks in two halves on two
+    # threads, where one is idle (runtime.share), give every value of the whole to the bit
+    if len(rows) >= SHARE_ROWS and runtime.idle_threads():
+        h = len(rows) // 2
+        runtime.share(run, [rows[:h], rows[h:]])
+    else:
+        run(rows)
     return last_it, fail
+
+
+#: :func:`fine_steps` shares its marks with an idle thread from this many on
+SHARE_ROWS = 2
 
 
 @njit(fastmath=True, cache=True, nogil=True)
