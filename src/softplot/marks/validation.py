@@ -494,9 +494,12 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
     half-arm on conflicting scene content. Each such
     cross is fitted four times, each time without one half-arm, from
     the position its neighbours predict and with the affine their positions predict held
-    (:func:`position_affine`; from ``A`` (M, 2, 2), free, where the neighbours do not
-    surround the cross): a free affine would let the remaining half of that bar set its
-    direction alone, and the cross's precision would drop several times. A fit that passes
+    (:func:`position_affine`; where the neighbours do not surround the cross, at the grid's
+    corners, the measured crosses' projective model's, :func:`model_affine`, unless the
+    scene is busy (``scene_tv``); free from ``A`` (M, 2, 2) there): a free affine would let
+    the remaining half of that bar set its direction alone (turned 10-28 degrees at the
+    corners of sweep renders, refused as the wrong orientation), and the cross's precision
+    would drop several times. A fit that passes
     the acceptance tests and lies within the outlier test's own threshold of that prediction
     is a measurement of the cross by its clean parts (of several such, the best-correlated).
     The blur is held at ``blur`` (px) when given; ``departure``, the outlier test's
@@ -537,7 +540,12 @@ def rescue(sc, shape, film, xy, cov, status, reason, Hm, sigma, floor_px, A, s0,
     sp_rej = np.where(edge[rej], s_out, s_in)
     target = grid.apply_h(Hm, film[rej]) + pred[meas.size :]
     best = np.full(rej.size, -np.inf)
-    for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, rej):
+    # at the grid's corners the measured crosses' model's affine held, unless the scene is
+    # busy (the joint scene's): there a held affine let the three half-arms slide onto a
+    # scene edge beside the cross (sweep renders' corner crosses 1-2.8 px off), where the
+    # turn of a free fit shows the pull and refuses it
+    for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, rej,
+                                           H=None if scene_tv else Hm):
         for f2 in _three_arm_fits(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
                                   max_shift, fit_shape, scene_tv, blur, gain_ref):
             sg = f2.sigma
@@ -612,20 +620,42 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
     return cand[np.isfinite(best)]
 
 
-def _held_groups(film, xy, ok, ppm, A, ids):
+def _held_groups(film, xy, ok, ppm, A, ids, H=None):
     """The crosses ``ids`` in two groups, each ``(positions in ids, affines, fit_shape)``:
     those whose neighbours surround them, with the affine the neighbours' positions predict
     held (:func:`position_affine`), and the others (at the grid's corners the prediction
-    extrapolates, its variance tens of times the typical), free from ``A`` (M, 2, 2);
-    ``ok`` (M,) bool the measured crosses; groups without a cross left out."""
+    extrapolates, its variance tens of times the typical), free from ``A`` (M, 2, 2), or,
+    with ``H`` (3, 3, the measured crosses' projective model film mm -> pixel), with its
+    affine held (:func:`model_affine`); ``ok`` (M,) bool the measured crosses; groups
+    without a cross left out."""
     held, lev = position_affine(film, xy, ok, ppm)
     hold = (np.isfinite(held[ids]).all((1, 2))
             & (lev[ids] <= 4.0 * np.nanmedian(lev[np.asarray(ok, bool)])))
+    if H is not None and not hold.all():
+        held[ids[~hold]] = model_affine(H, film[ids[~hold]], ppm)
+        hold = np.isfinite(held[ids]).all((1, 2))
     out = []
     for grp, fit_shape in ((np.where(hold)[0], False), (np.where(~hold)[0], True)):
         if grp.size:
             out.append((grp, A[ids[grp]] if fit_shape else held[ids[grp]], fit_shape))
     return out
+
+
+def model_affine(H, film, ppm):
+    """The pixel -> mark-frame affines (K, 2, 2) of crosses at ``film`` (K, 2) mm under the
+    projective model ``H`` (film mm -> pixel system): the inverse of its Jacobian in the mark
+    frame (u along film x, v along film -y, nominal px at ``ppm`` px per mm); NaN where the
+    Jacobian is singular. Off by the film's deformation gradient only (a 100 um deformation
+    over a 60 mm format: a few 1e-3), which turns and scales a symmetric cross without moving
+    its centre."""
+    J = grid.h_jacobian(H, film) @ np.diag([1.0 / ppm, -1.0 / ppm])
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    adj = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1),
+                    np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
+    with np.errstate(all="ignore"):
+        A = adj / det[:, None, None]
+    A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < 1e-12)] = np.nan
+    return A
 
 
 def _three_arm_fits(sc, shape, target, Ag, s0, init_err, sign, rules, max_shift, fit_shape,
