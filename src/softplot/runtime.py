@@ -16,7 +16,7 @@ _POOL_LOCK = threading.Lock()
 _IN_POOL = threading.local()
 
 __all__ = ["tune_allocator", "set_threads", "threads", "thread_map", "concurrent", "share",
-           "idle_threads"]
+           "idle_threads", "pooled_map"]
 
 
 def set_threads(n: int | None) -> None:
@@ -53,11 +53,12 @@ def threads() -> int:
 
 
 def _run_marked(fn, x):
+    was = getattr(_IN_POOL, "active", False)
     _IN_POOL.active = True
     try:
         return fn(x)
     finally:
-        _IN_POOL.active = False
+        _IN_POOL.active = was
 
 
 #: items submitted to the pool and not done yet (queued or running; :func:`_submit`)
@@ -128,6 +129,16 @@ def thread_map(fn, items) -> list:
     finally:
         for f in futs:  # after an exception: the items not started are not run
             f.cancel()
+
+
+def pooled_map(fn, items) -> list:
+    """:func:`thread_map`, each item run as on a pool thread also where there is one item or
+    one thread (the caller's thread marked as one: :func:`concurrent` is false inside, as in
+    the pool): the work inside an item is split as it is on a pool thread."""
+    items = list(items)
+    if len(items) <= 1 or not concurrent():
+        return [_run_marked(fn, x) for x in items]
+    return thread_map(fn, items)
 
 
 def share(fn, items) -> list:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import threading
 import warnings
 from dataclasses import dataclass, fields
 
@@ -20,7 +21,7 @@ from softplot.marks.coarse import _release_rows
 from softplot.marks.common import median_rows
 from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
-from softplot.runtime import concurrent, thread_map
+from softplot.runtime import concurrent, pooled_map, thread_map
 
 __all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma",
            "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
@@ -974,6 +975,74 @@ def _merge_fine(n, pieces) -> Fine:
     return Fine(**kw)
 
 
+#: :func:`measure` refits chunks with the joint scene ahead of its decision
+#: (:class:`_Ahead`), on a thread that would otherwise wait for the first pass's last chunk
+REFIT_AHEAD = True
+
+
+def _likely_busy(outs, sign, rules, busy) -> bool:
+    """Whether the first fits ``outs`` ((LSMResult, edge, held) of the chunks done so far)
+    already show a busy scene: ``busy`` of the edges of the fits of the expected polarity
+    ``sign`` with the contrast-to-noise of ``rules`` (what the acceptance tests mostly keep).
+    A guess: it only decides what :class:`_Ahead` starts early."""
+    e = [o[1][(np.sign(o[0].gain) == sign) & (o[0].cnr >= rules.min_cnr)] for o in outs]
+    return bool(e) and busy(np.concatenate(e))
+
+
+class _Ahead:
+    """The first pass of :func:`measure`'s chunks (``run``) with the refit of finished chunks
+    with the joint scene (``rerun``) started ahead of the decision: a pool thread that finds
+    no first-pass chunk left to start while another is still fitted (it would wait) refits a
+    finished chunk, as long as ``likely`` (:func:`_likely_busy`) of the chunks done says the
+    scene is busy. Each refit is the one :func:`measure` makes after the decision, on a pool
+    thread as there, so the values are the same to the last bit; where the decision is no
+    joint scene they are not used (only a waiting thread's time was spent)."""
+
+    def __init__(self, parts, run, rerun, likely):
+        self.parts, self.run, self.rerun, self.likely = parts, run, rerun, likely
+        self.lock = threading.Lock()
+        self.started = 0  # first-pass chunks started
+        self.running = 0  # ... and not finished
+        self.outs: dict = {}  # chunk -> its first fits, (LSMResult, edge, held)
+        self.free: list = []  # finished chunks not refitted
+        self.refits: dict = {}  # chunk -> its refit, made ahead
+
+    def first(self, i):
+        """The first pass of chunk ``i`` (its ``run``), then refits ahead while the thread
+        would wait."""
+        with self.lock:
+            self.started += 1
+            self.running += 1
+        o = self.run(self.parts[i])
+        with self.lock:
+            self.running -= 1
+            self.outs[i] = o
+            self.free.append(i)
+        while True:
+            with self.lock:
+                if (self.started < len(self.parts) or self.running == 0 or not self.free
+                        or not self.likely([self.outs[j] for j in sorted(self.outs)])):
+                    break
+                j = self.free.pop(0)
+            try:
+                self.refits[j] = self.rerun(self._item(j))
+            except Exception:  # noqa: BLE001 - made again after the decision, if wanted
+                break
+        return o
+
+    def _item(self, j):
+        o = self.outs[j]
+        return (self.parts[j], o[0], o[2], o[1])
+
+    def rest(self, items) -> list:
+        """The refits of every chunk (``items`` as ``rerun`` takes them): those made ahead,
+        the others now (on pool threads, :func:`softplot.runtime.pooled_map`)."""
+        todo = [j for j in range(len(items)) if j not in self.refits]
+        got = dict(self.refits)
+        got.update(zip(todo, pooled_map(self.rerun, [items[j] for j in todo]), strict=True))
+        return [got[j] for j in range(len(items))]
+
+
 def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             init_err: float, sign: int, rules: AcceptRules | None = None,
             fit_shape: bool = True, scene: bool = True, anchor: np.ndarray | None = None,
@@ -1114,9 +1183,26 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
+        def rerun(a, starts=starts, ie=ie, tv=auto_tv, s0=s0, fb=fit_blur):
+            # the refit with the joint scene (below) of one chunk ``k`` from its first fits:
+            # only the crosses with a scene edge in their footprint ``e``
+            # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit
+            k, first, held, e = a
+            sel = e > _scene_tv.EDGE_MIN
+            if not sel.any():
+                return first
+            return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
+                        drop_part, tv, rules, first, fit_blur=fb, tv_select=sel,
+                        scene_bg=held)[0]
+
         parts = _chunks(idx, sets, chunk)
         idx = np.concatenate(parts)  # (the order of the chunks, set by set)
-        out = thread_map(run, parts)
+        ahead = None
+        if want and REFIT_AHEAD and len(parts) >= 3 and concurrent():
+            ahead = _Ahead(parts, run, rerun, lambda o: _likely_busy(o, sign, rules, busy))
+            out = thread_map(ahead.first, range(len(parts)))
+        else:
+            out = thread_map(run, parts)
         res = _concat([o[0] for o in out])
         if p_i == 0:
             edge[idx] = np.concatenate([o[1] for o in out])
@@ -1124,22 +1210,11 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                                  max_shift, sets[idx], sigma_ref, gain_ref)
         if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
-            # scene (what a call with scene_tv=auto_tv gives, without fitting twice)
+            # scene (what a call with scene_tv=auto_tv gives, without fitting twice); the
+            # chunks refitted ahead (:class:`_Ahead`) are taken as they are
             scene_tv = auto_tv
-
-            def rerun(a, starts=starts, ie=ie, tv=scene_tv, s0=s0, fb=fit_blur):
-                # only the crosses with a scene edge in their footprint
-                # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit
-                k, first, held = a
-                sel = edge[k] > _scene_tv.EDGE_MIN
-                if not sel.any():
-                    return first
-                return _fit(scan, shape, starts[k], A0[k], s0, ie, sign, fit_shape, scene,
-                            drop_part, tv, rules, first, fit_blur=fb, tv_select=sel,
-                            scene_bg=held)[0]
-
-            res = _concat(thread_map(rerun, [(k, o[0], o[2]) for k, o in zip(parts, out,
-                                                                             strict=True)]))
+            items = [(k, o[0], o[2], o[1]) for k, o in zip(parts, out, strict=True)]
+            res = _concat(ahead.rest(items) if ahead is not None else thread_map(rerun, items))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
                                 max_shift, sigma_ref, gain_ref)
         if contrast:
