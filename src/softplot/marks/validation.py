@@ -68,9 +68,11 @@ OUTLIER_K = 2.75
 EXTRAPOLATION_MAX = 2.0
 #: a measured cross departing from its neighbours' prediction by more than this many times
 #: the measured crosses' robust spread (:func:`robust_spread`, 1.4826 x the median of the
-#: distances: about 1.74 standard deviations of one coordinate, so 1.5 is about 2.6 of them)
-#: is fitted again without each half-arm (:func:`second_look`)
-SECOND_LOOK_SPREAD = 1.5
+#: distances: about 1.74 standard deviations of one coordinate) is fitted again without each
+#: half-arm (:func:`second_look`; at 1.5 the sweep kept 2 more gross fits, at 1.0 without
+#: the refit's precision test 1 fewer, but replaced clean fits by their less precise
+#: three-arm refits)
+SECOND_LOOK_SPREAD = 1.0
 #: a cross measured again (:func:`rescue`) has at least this share of the measured crosses'
 #: median contrast (crosses under a 30 % dark region keep 0.3 of it)
 RESCUE_MIN_GAIN = 0.1
@@ -577,13 +579,17 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
 
     A measured cross departing from its neighbours' prediction by more than
     :data:`SECOND_LOOK_SPREAD` times the robust spread of the measured crosses' departures
-    (:func:`robust_spread`, about 2.6 standard deviations of them) and the outlier test's
+    (:func:`robust_spread`, about 1.7 standard deviations of them) and the outlier test's
     floor ``floor_px`` (px, (M,)) is fitted again from the prediction four times, each time
     without one half-arm (as :func:`rescue` fits, the affine the neighbours predict held, the
     blur held at ``blur``). The best-correlated refit that passes the acceptance tests, is as
-    precise as :func:`rescue` requires and lies within that reach of the prediction, and at
-    most half as far from it as the first fit, replaces the first fit: three half-arms clear
-    of the scene content measure the cross, where the first fit took the content for an arm.
+    precise as :func:`rescue` requires, lies within that reach of the prediction and at most
+    half as far from it as the first fit, and is better supported than the first fit (its
+    independent-pixel sigma no larger) replaces the first fit: three half-arms clear of the
+    scene content measure the cross, where the first fit took the content for an arm. (A
+    clean cross's three half-arms measure it less precisely than its four: its first fit
+    stays; a refit chosen only for lying nearer the prediction would bias the departures
+    the scan's variance factor and the lone bars' sigmas along them are taken from.)
     ``film`` (M, 2) mm; ``xy`` (M, 2) pixel system; ``cov`` the reported and the
     independent-pixel covariances (M, 2, 2) px^2 each; ``sigma`` (M,) px the independent-pixel
     precision; ``A`` (M, 2, 2) the fitted affines (pixel -> mark frame); ``Hm`` (3, 3) the
@@ -599,18 +605,21 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
     dev = np.hypot(*(r[meas] - pred).T)
     reach = np.maximum(SECOND_LOOK_SPREAD * robust_spread(dev, edge[meas]),
                        np.broadcast_to(floor_px, (len(film),))[meas])
-    sel = dev > reach
+    # a first fit as precise as the scan's typical cross has no better-supported refit (its
+    # three half-arms measure it less precisely than its four): not fitted again
+    s_meas = float(np.median(sigma[meas]))
+    sel = (dev > reach) & (np.nan_to_num(sigma[meas], nan=np.inf) > s_meas)
     if not sel.any():
         return meas[:0]
     cand, dev, reach = meas[sel], dev[sel], reach[sel]
     target = grid.apply_h(Hm, film[cand]) + pred[sel]
-    s_meas = float(np.median(sigma[meas]))
     best = np.full(cand.size, -np.inf)
     for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, cand):
         for f2 in _three_arm_fits(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
                                   max_shift, fit_shape, scene_tv, blur, gain_ref):
             d = np.hypot(*(f2.xy - target[grp]).T)
             good = (f2.ok & (d <= reach[grp]) & (d <= 0.5 * dev[grp])
+                    & (np.nan_to_num(f2.sigma, nan=np.inf) <= sigma[cand[grp]])
                     & (np.nan_to_num(f2.score, nan=-1.0) > best[grp])
                     & _rescue_like(f2, s_meas, gain_ref))
             for j in np.where(good)[0]:
