@@ -258,3 +258,50 @@ def test_median_rows_is_numpys_median(dtype):
     a[1, 7] = np.nan
     got, ref = median_rows(a), np.median(a, axis=1)
     assert np.array_equal(got, ref, equal_nan=True) and np.isnan(got[1])
+
+
+def test_both_signs_peaks_found_side_by_side_are_the_one_threads():
+    """reseau_candidates finds each sign's NCC peaks on its own thread (two signs, two
+    threads): the peaks of both signs, their scores and bounds are the one thread's bit for
+    bit, and the two searches ran on the pool's threads."""
+    import threading
+
+    from softplot import runtime
+    from softplot.camera import load_camera
+    from softplot.io import Scan
+    from softplot.marks import coarse
+    from softplot.marks.overview import reseau_overview
+    from softplot.marks.template import cross_shape
+    from softplot.synthetic import ScanSpec, render_scan
+
+    cam = load_camera("rollei-6006")
+    img, _ = render_scan(cam, ScanSpec(dpi=600.0, rotation_deg=1.5, scene="busy"), seed=5)
+    sc = Scan.from_array(img, dpi=600.0)
+    ppm = 600.0 / 25.4
+    ov = reseau_overview(sc, cross_shape(cam, ppm).width, ppm, "scan")
+    where = []
+    real = coarse.find_peaks
+
+    def spy(*a, **k):
+        where.append(threading.current_thread().name)
+        return real(*a, **k)
+
+    got = {}
+    try:
+        for n in (1, 2):
+            runtime.set_threads(n)
+            where.clear()
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(coarse, "find_peaks", spy)
+                c = candidates.reseau_candidates(sc, ov, cam, "auto", 1.0).complete()
+            got[n] = c
+            assert len(where) == 2
+            assert all(w.startswith("softplot") for w in where) == (n == 2)
+    finally:
+        runtime.set_threads(None)
+    assert set(got[1].peaks) == set(got[2].peaks) == {1, -1}
+    for sg in (1, -1):
+        a, b = got[1].peaks[sg], got[2].peaks[sg]
+        assert len(a.score) >= 100
+        assert np.array_equal(a.xy, b.xy) and np.array_equal(a.score, b.score)
+        assert got[1].bound[sg] == got[2].bound[sg]

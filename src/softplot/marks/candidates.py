@@ -129,12 +129,17 @@ def reseau_candidates(scan, ov: ReseauOverview, camera, polarity: str,
     # certificate's): the number of candidates kept and the polarity's bound follow it
     n_in = crosses_in(scan, res, px_per_mm)
     keep = peaks_kept(n_in)
-    raw = {sg: coarse.find_peaks(maps.get(sg, R), h,
+    def peaks_of(sg):
+        return coarse.find_peaks(maps.get(sg, R), h,
                                  min_dist=max(2.0, min(0.35 * pitch_ov, arm_half)),
                                  threshold=0.2, max_peaks=ARM_POOL * keep, sign=sg,
                                  image=ov.image, std_half=max(int(arm_half), 2),
                                  min_contrast=noise_floor)
-           for sg in polarity_signs(polarity)}
+
+    # each sign's peaks on their own (OpenCV's morphology on the map, which releases the GIL):
+    # both signs side by side on the process's threads
+    signs = polarity_signs(polarity)
+    raw = dict(zip(signs, thread_map(peaks_of, signs), strict=True))
 
     def scored(sg):
         # the sign's peaks scored by their arms and its bound, or None with fewer than 4
