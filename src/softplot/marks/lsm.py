@@ -140,10 +140,12 @@ def support_mask(shape: MarkShape, u, v, margin: float) -> np.ndarray:
 
     ``u``, ``v`` are mark-frame coordinates (px); returns a boolean array of their shape.
     """
-    if shape.kind == "cross":
+    if shape.kind in ("cross", "bar"):
         hl = 0.5 * shape.length + margin
         hw = 0.5 * shape.width + margin
         au, av = np.abs(u), np.abs(v)
+        if shape.kind == "bar":
+            return (au <= hl) & (av <= hw)
         return ((au <= hl) & (av <= hw)) | ((av <= hl) & (au <= hw))
     r = np.hypot(u, v)
     return r <= shape.extent + margin
@@ -167,7 +169,7 @@ def patch_frame(origin, c, A, shape3):
 
 def _parts(shape: MarkShape, u, v) -> np.ndarray:
     """Index of the part (0..K-1) each mark-frame point belongs to (-1: centre square)."""
-    if shape.kind != "cross":
+    if shape.kind not in ("cross", "bar"):
         return np.zeros(np.shape(u), np.int8)
     part = np.where(np.abs(u) >= np.abs(v), np.where(u >= 0, 0, 2), np.where(v >= 0, 1, 3))
     core = np.maximum(np.abs(u), np.abs(v)) <= shape.width
@@ -915,7 +917,7 @@ def lsm(
     parts = _parts(shape, u, v)
     near = support_mask(shape, u, v, 1.5 * p[:, 6:7] + 1.0) & valid
     good = (w_rob > 0.5) & near
-    K = 4 if shape.kind == "cross" else 1
+    K = 4 if shape.kind in ("cross", "bar") else 1
     support = np.empty((n, K))
     part_gain = np.full((n, K), np.nan)
     wf = last["w"] * vf

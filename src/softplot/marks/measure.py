@@ -23,8 +23,8 @@ from softplot.marks.lsm import LSMResult, _parts, lsm, patch_frame, support_mask
 from softplot.marks.template import MarkShape, aperture
 from softplot.runtime import concurrent, pooled_map, thread_map
 
-__all__ = ["patches", "Fine", "measure", "measure_one_arm", "AcceptRules", "peer_sigma",
-           "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
+__all__ = ["patches", "Fine", "measure", "measure_one_arm", "bar_share", "AcceptRules",
+           "peer_sigma", "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
            "peer_gain", "faint"]
 
 
@@ -1277,6 +1277,51 @@ def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.
     return out
 
 
+def bar_share(scan, shape: MarkShape, c: np.ndarray, A: np.ndarray, s: float,
+              sign: int) -> np.ndarray:
+    """The weaker bar's contrast over the stronger's (N,) for crosses at ``c`` (N, 2, pixel
+    system) with pixel -> mark-frame affines ``A`` (N, 2, 2) and blur ``s`` (px), without a
+    fit: each patch's pixels near the cross (:func:`softplot.marks.lsm.support_mask`) are
+    regressed on a plane and on what each bar adds to the cross and the central square
+    they share (:meth:`MarkShape.bars`), so that a blurred central square does not lend a
+    missing bar its contrast. A contrast of the wrong polarity (``sign``) counts as 0; NaN
+    where the regression is singular or neither bar has contrast. Near 1 for a whole cross,
+    near 0 for a one-armed one."""
+    c = np.asarray(c, float).reshape(-1, 2)
+    n = len(c)
+    if n == 0 or shape.kind != "cross":
+        return np.full(n, np.nan)
+    A = np.asarray(A, float).reshape(n, 2, 2)
+    grow = float(1.0 / max(np.linalg.svd(A, compute_uv=False).min(), 1e-3))
+    # the bars' own parts show within a few blurs of the central square: a long cross is
+    # looked at there only (mark-frame half-size ``reach``, px)
+    reach = min(shape.extent + 2.5 * s + 1.25, 0.5 * shape.width + 6.0 * s + 6.0)
+    half = int(np.ceil(reach * grow + 2))
+    stack, origin = patches(scan, c, half)
+    u, v = patch_frame(origin, c, A, stack.shape)
+    ap = tuple(x[:, None, None] for x in aperture(A.astype(np.float32)))
+    bu, bv, core = shape.bars(u, v, np.float32(max(s, 0.3)), aperture=ap)
+    yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
+    m = (support_mask(shape, u, v, 2.5 * s + 1.25) & np.isfinite(stack)
+         & (np.maximum(np.abs(u), np.abs(v)) <= reach))
+    X = np.stack(np.broadcast_arrays(m.astype(np.float32), (xx - half) * m, (yy - half) * m,
+                                     (bu - core) * m, (bv - core) * m, core * m), -1)
+    X = X.reshape(n, -1, 6)
+    g = np.where(m, stack, 0.0).reshape(n, -1)
+    Xt = X.transpose(0, 2, 1)
+    N = np.matmul(Xt, X).astype(float)
+    rhs = np.matmul(Xt, g[..., None])[..., 0].astype(float)
+    scale = np.sqrt(np.maximum(np.einsum("nii->ni", N), 1e-12))
+    Ns = N / scale[:, :, None] / scale[:, None, :]  # unit diagonal: its conditioning
+    ok = np.abs(np.linalg.det(Ns)) > 1e-8
+    b = np.full((n, 6), np.nan)
+    if ok.any():
+        b[ok] = np.linalg.solve(Ns[ok], (rhs[ok] / scale[ok])[..., None])[..., 0] / scale[ok]
+    con = np.maximum(b[:, 3:5] * sign, 0.0)
+    with np.errstate(all="ignore"):
+        return np.where(con.max(1) > 0, con.min(1) / con.max(1), np.nan)
+
+
 def lone_arm_keep(shape: MarkShape, u, v, axis: int) -> np.ndarray:
     """Pixels of a cross's bar along mark-frame axis ``axis`` (0: the u bar, 1: the v bar):
     those nearer that axis than the other, i.e. the two half-arms of the bar and its half of
@@ -1284,10 +1329,67 @@ def lone_arm_keep(shape: MarkShape, u, v, axis: int) -> np.ndarray:
     return np.abs(v) <= np.abs(u) if axis == 0 else np.abs(u) <= np.abs(v)
 
 
+def _bar_refit(stack, origin, c0, A0, shape, s_fit, blur, bg, wt, fits, axis_of, one,
+               max_shift):
+    """The lone bars ``one`` (N bool) fitted again with the model of a bar alone
+    (:class:`MarkShape` "bar", along mark-frame axis ``axis_of`` (N,) of the cross) over
+    every pixel near it, from the position across the bar their first fit gave (``fits``:
+    per axis ``(LSMResult, normal across the bar (N, 2), offset across from c0 (N,))``).
+    The first fit's model is the whole cross over the bar's pixels nearer its axis than the
+    other's: it leaves out the bar's pixels by the centre and keeps the missing bar's
+    blurred edges there in the model. ``stack`` (N, h, w) with ``origin`` (N, 2), ``c0``
+    (N, 2) pixel system, ``A0`` (N, 2, 2) pixel -> mark-frame affines, ``bg``, ``wt`` the
+    scene and prior weights of :func:`scene_background`. Returns ``(offset across from c0
+    (N,) px, its variance (N,) px^2, its independent-pixel variance (N,))``, NaN where not
+    refitted, where the refit moved more than ``max_shift`` across or changed polarity."""
+    n = len(c0)
+    out = (np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan))
+    k = np.where(one)[0]
+    if k.size == 0:
+        return out
+    ax = axis_of[k]
+    A = A0[k].copy()
+    A[ax == 1] = A[ax == 1][:, ::-1, :]  # the v bar: its axis as the bar's u
+    pick = [fits[int(a)] for a in ax]
+    nrm = np.stack([f[1][i] for f, i in zip(pick, k, strict=True)])
+    start = np.array([f[2][i] for f, i in zip(pick, k, strict=True)])
+    g0 = np.array([f[0].gain[i] for f, i in zip(pick, k, strict=True)])
+    res = lsm(stack[k], origin[k], c0[k] + start[:, None] * nrm, A,
+              MarkShape("bar", length=shape.length, width=shape.width), s0=s_fit,
+              init_err=0.3, fit_shape=False, background=bg[k], weight=wt[k],
+              sat_bg=_saturated(bg[k]), clip=(0.0, 1.0), fit_blur=blur is None,
+              arm_check=False)
+    off = np.einsum("ij,ij->i", res.centre - c0[k], nrm)
+    var = np.einsum("ij,ijk,ik->i", nrm, res.cov, nrm)
+    var_w = np.einsum("ij,ijk,ik->i", nrm, res.cov_white, nrm)
+    good = (np.abs(np.nan_to_num(off, nan=np.inf)) <= max_shift) & np.isfinite(var)
+    good &= (var > 0) & (np.sign(res.gain) == np.sign(g0))
+    for a, b in zip(out, (off, var, var_w), strict=True):
+        a[k[good]] = b[good]
+    return out
+
+
+def _other_bar_absent(fits, sign: int, share: float, strict: bool = False,
+                      min_score: float | None = None) -> np.ndarray:
+    """(N, 2) bool: for each of the two lone-bar fits of N crosses (``fits``, per axis
+    ``(LSMResult, ...)``), whether the other bar's fit has less than ``share`` of its
+    contrast (of the expected polarity ``sign``; ``strict``: of either sign, and a fit
+    that did not run counts as there); with ``min_score``, and this bar's fit correlates
+    with its model at least that well."""
+    g = [np.nan_to_num(np.abs(np.where(np.sign(f[0].gain) == sign, f[0].gain, 0.0)), nan=0.0)
+         for f in fits]
+    other = ([np.nan_to_num(np.abs(f[0].gain), nan=np.inf) for f in fits] if strict else g)
+    out = np.stack([other[1] < share * g[0], other[0] < share * g[1]], 1)
+    if min_score is not None:
+        out &= np.stack([np.nan_to_num(f[0].score, nan=-1.0) >= min_score for f in fits], 1)
+    return out
+
+
 def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                     sign: int, rules: AcceptRules | None = None, *, max_shift: float,
                     cnr_ref: float | None = None, along_sd: np.ndarray | float = 1.0,
-                    blur: float | None = None, gain_ref: float | None = None) -> Fine:
+                    blur: float | None = None, gain_ref: float | None = None,
+                    absent: float | None = None, min_score: float | None = None) -> Fine:
     """Crosses of which only one bar is visible (the other faded, aliased, scratched or
     covered), measured as a line: precise across the bar, nothing along it.
 
@@ -1304,13 +1406,18 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     noise under a lone bar, a scene's or a dark region's, is not the crosses'); with
     ``gain_ref`` its contrast is at least :data:`LONE_BAR_MIN_GAIN` of it in any case. Of two
     accepted bars the better-correlated is kept (a cross whose two bars both pass is a
-    whole cross the caller's tests refused: not claimed here).
+    whole cross the caller's tests refused: not claimed here). With ``absent`` the other
+    bar must be absent more plainly: its fit ran (finite) and its contrast, of either sign,
+    is less than ``absent`` of this bar's; with ``min_score`` this bar's correlation with
+    its model is at least that (a second look at crosses measured whole).
 
     The bar fixes the centre across it only: its tips are the part of a cross that fades
     first, and its length is not known (a certificate's is a starting guess). So the
     centre is the fit's across the bar and the prediction ``c0`` along it; the covariance
     (pixel system) is the fit's variance across the bar and ``along_sd**2`` (px^2, the
-    prediction's error, per cross or one value) along it. ``Fine.arms`` is 1 where a bar
+    prediction's error, per cross or one value) along it. The fit across the bar is a
+    second one with the model of the bar alone over all its pixels (:func:`_bar_refit`;
+    the first one's where that fails). ``Fine.arms`` is 1 where a bar
     was measured, 0 elsewhere.
     """
     rules = rules or AcceptRules()
@@ -1365,21 +1472,25 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     # the other bar must be absent: its own fit has less than bar_absent of this bar's
     # contrast (a cross whose second bar is there but was refused - pulled by the scene,
     # partly hidden - is not measured from one bar)
-    g = [np.abs(np.where(np.sign(f[0].gain) == sign, f[0].gain, 0.0)) for f in fits]
-    g = [np.nan_to_num(x, nan=0.0) for x in g]
-    passed[:, 0] &= g[1] < rules.bar_absent * g[0]
-    passed[:, 1] &= g[0] < rules.bar_absent * g[1]
+    passed &= _other_bar_absent(fits, sign, rules.bar_absent if absent is None else absent,
+                                strict=absent is not None, min_score=min_score)
     one = passed.sum(1) == 1
+    axis_of = np.argmax(passed, 1)
+    bar = _bar_refit(stack, origin, c0, A0, shape, s_fit, blur, bg, wt, fits, axis_of, one,
+                     max_shift)
     for i in np.where(one)[0]:
-        axis = int(np.argmax(passed[i]))
-        res, nrm, across = fits[axis]
+        res, nrm, across = fits[int(axis_of[i])]
         nv = nrm[i]
         tv = np.array([-nv[1], nv[0]])
-        var_n = float(nv @ res.cov[i] @ nv)
-        out.xy[i] = c0[i] + across[i] * nv
+        if np.isfinite(bar[0][i]):  # the bar's own model
+            off, var_n, var_w = bar[0][i], bar[1][i], bar[2][i]
+        else:
+            off = across[i]
+            var_n = float(nv @ res.cov[i] @ nv)
+            var_w = float(nv @ res.cov_white[i] @ nv)
+        out.xy[i] = c0[i] + off * nv
         out.cov[i] = var_n * np.outer(nv, nv) + float(along_sd[i]) ** 2 * np.outer(tv, tv)
-        out.cov_white[i] = (float(nv @ res.cov_white[i] @ nv) * np.outer(nv, nv)
-                            + float(along_sd[i]) ** 2 * np.outer(tv, tv))
+        out.cov_white[i] = var_w * np.outer(nv, nv) + float(along_sd[i]) ** 2 * np.outer(tv, tv)
         out.score[i], out.cnr[i], out.s[i] = res.score[i], res.cnr[i], res.s[i]
         out.ok[i], out.reason[i], out.arms[i] = True, "", 1
     for i in np.where(passed.all(1))[0]:

@@ -164,10 +164,12 @@ def box_pixel_profile(t, a, s, b, m):
 class MarkShape:
     """Geometry of one kind of mark in its mark frame, in pixels at the nominal scale.
 
-    ``kind`` is "cross", "dot" or "circle-dot". For a cross ``length`` is the tip-to-tip
-    length of each bar and ``width`` the line width. For a dot ``radius`` is its radius. For a
-    circle-dot ``radius`` is the radius of the circle's centre line, ``width`` its stroke width
-    and ``dot_radius`` the radius of the central dot (0 for a plain circle).
+    ``kind`` is "cross", "bar", "dot" or "circle-dot". For a cross ``length`` is the
+    tip-to-tip length of each bar and ``width`` the line width; a bar is one bar of such a
+    cross, along ``u`` (a one-armed cross, :func:`softplot.marks.measure.measure_one_arm`).
+    For a dot ``radius`` is its radius. For a circle-dot ``radius`` is the radius of the
+    circle's centre line, ``width`` its stroke width and ``dot_radius`` the radius of the
+    central dot (0 for a plain circle).
     """
 
     kind: str
@@ -179,7 +181,7 @@ class MarkShape:
     @property
     def extent(self) -> float:
         """Half-size (px) of the square that holds the undistorted, unblurred mark."""
-        if self.kind == "cross":
+        if self.kind in ("cross", "bar"):
             return 0.5 * self.length
         if self.kind == "dot":
             return self.radius
@@ -189,6 +191,25 @@ class MarkShape:
         """The same shape at ``k`` times the size (e.g. in a reduced overview image)."""
         return MarkShape(self.kind, self.length * k, self.width * k, self.radius * k,
                          self.dot_radius * k)
+
+    def bars(self, u, v, s, aperture=None):
+        """The two bars of a cross each alone and the central square they share, blurred as
+        :meth:`evaluate` blurs the cross: ``(T_u, T_v, T_c)`` at mark-frame points ``u``,
+        ``v`` (px), the bar along ``u`` (long in ``u``, narrow in ``v``), the bar along
+        ``v`` and the product of the two widths' profiles; :meth:`evaluate`'s cross is
+        ``T_u + T_v - T_c``."""
+        if self.kind != "cross":
+            raise ValueError("bars: a cross only")
+        if aperture is None:
+            Lu, Lv = box_profile(u, self.length, s)[0], box_profile(v, self.length, s)[0]
+            Wu, Wv = box_profile(u, self.width, s)[0], box_profile(v, self.width, s)[0]
+        else:
+            bu, mu, bv, mv = aperture
+            s_len = np.sqrt(np.asarray(s, np.float32) ** 2 + np.float32(1.0 / 12.0))
+            Lu, Lv = box_profile(u, self.length, s_len)[0], box_profile(v, self.length, s_len)[0]
+            Wu = box_pixel_profile(u, self.width, s, bu, mu)[0]
+            Wv = box_pixel_profile(v, self.width, s, bv, mv)[0]
+        return Lu * Wv, Wu * Lv, Wu * Wv
 
     def evaluate(self, u, v, s, aperture=None):
         """Template value and derivatives at mark-frame points.
@@ -232,6 +253,15 @@ class MarkShape:
             Tv = Lu * Wv_t + Wu * Lv_t - Wu * Wv_t
             Ts = (Lu_s * Wv + Lu * Wv_s + Wu_s * Lv + Wu * Lv_s - Wu_s * Wv - Wu * Wv_s)
             return T, Tu, Tv, Ts
+        if self.kind == "bar":  # one bar of a cross, along u
+            if aperture is None:
+                Lu, Lu_t, Lu_s = box_profile(u, self.length, s)
+                Wv, Wv_t, Wv_s = box_profile(v, self.width, s)
+            else:
+                Lu, Lu_t, Lu_s = box_profile(u, self.length, s_len)
+                Lu_s = Lu_s * (np.asarray(s, np.float32) / s_len)
+                Wv, Wv_t, Wv_s = box_pixel_profile(v, self.width, s, bv, mv)
+            return Lu * Wv, Lu_t * Wv, Lu * Wv_t, Lu_s * Wv + Lu * Wv_s
         if aperture is not None:
             ds_len = np.asarray(s, np.float32) / s_len
             s = s_len

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from softplot.marks import grid
-from softplot.marks.measure import AcceptRules, measure, measure_one_arm, peer_gain
+from softplot.marks.measure import AcceptRules, bar_share, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
 from softplot.marks.neighbours import (
     local_fit,
@@ -37,10 +37,11 @@ from softplot.marks.precision import variance_factor
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
-           "rescue", "second_look", "SECOND_LOOK_SPREAD", "lone_arms", "edge_crosses",
-           "edge_cut_part", "extrapolation",
-           "prediction_reach", "h_parameter_jacobian", "similar_four", "SIMILAR_TOL_MM",
-           "departure_model", "expected_departure", "outlier_threshold", "robust_spread",
+           "rescue", "second_look", "SECOND_LOOK_SPREAD", "lone_arms", "one_bar_crosses",
+           "edge_crosses", "edge_cut_part", "extrapolation", "prediction_reach",
+           "h_parameter_jacobian", "similar_four", "SIMILAR_TOL_MM", "ONE_BAR_ABSENT",
+           "ONE_BAR_MIN_SCORE", "departure_model", "expected_departure", "outlier_threshold",
+           "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
            "REINSTATE_DEGREES", "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX",
@@ -174,6 +175,9 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     if len(reinstate(film, xy, status, reason, floor_px, Hm)):
         Hm, residual, rms = global_model(film, xy, status, Hm)
     arms = np.where(np.array(status) == "measured", 2, 0)
+    one_bar_crosses(scan, shape, film, xy, (cov, cov_w), status, arms, Hm, sigma, A_fit,
+                    pr.s0, pr.sign, rules, pr.max_shift, held_blur(fine), fine, ppm,
+                    along_max=LONE_ARM_ALONG_MAX_MM * ppm)
     # the errors the crosses' own fits cannot see, from their departures from each other
     # (of the two-armed crosses only: the lone bars below do not change it)
     two = arms == 2
@@ -723,18 +727,86 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     # limit, and no bar of a well-predicted aerial frame was ever measured
     if rms > along_max:
         return
+    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
+                       rules, max_shift, blur, fine, ppm)
+    for j, i in enumerate(q):
+        if f1.ok[j]:
+            xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
+            status[i], reason[i], arms[i] = "measured", "", 1
+
+
+#: a cross measured whole is measured again as a lone bar only where its other bar's fit
+#: finds less than this share of the bar's contrast (``bar_absent``'s half): on the sweep's
+#: one-armed crosses measured whole 0-0.21, on whole crosses of busy, low-contrast or
+#: saturated scans that one bar's fit sees more weakly 0.26-0.5
+ONE_BAR_ABSENT = 0.25
+#: ... and where the bar's fit correlates with its model at least this well: the sweep's
+#: one-armed crosses measured whole 0.92-0.98, whole crosses on busy scenes 0.67-0.91 (of
+#: those whose other bar's fit was below ``ONE_BAR_ABSENT``, 0.73)
+ONE_BAR_MIN_SCORE = 0.85
+
+
+def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
+                  rules, max_shift, blur, fine, ppm, **strict):
+    """:func:`softplot.marks.measure.measure_one_arm` of the crosses ``q`` from ``target``
+    (pixel system) with the affine their neighbours predict (:func:`position_affine`, ``A``
+    where they do not surround the cross), along the bar the standard deviation ``rms`` (px,
+    the measured crosses' departures from their neighbours) at least
+    :data:`LONE_ARM_ALONG_MIN_PX` times the prediction's reach, and the measured crosses'
+    (``meas``) contrast and contrast to noise as the references; ``strict``: its ``absent``
+    and ``min_score``. Returns the ``Fine``."""
     along = max(rms, LONE_ARM_ALONG_MIN_PX) * prediction_reach(film[q], film[meas], Hm,
                                                                sigma[meas])
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
-    f1 = measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
-                         along_sd=along, blur=blur, cnr_ref=cnr_ref,
-                         gain_ref=peer_gain(fine, least=1))
-    for j, i in enumerate(q):
-        if f1.ok[j]:
-            xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
-            status[i], reason[i], arms[i] = "measured", "", 1
+    return measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
+                           along_sd=along, blur=blur, cnr_ref=cnr_ref,
+                           gain_ref=peer_gain(fine, least=1), **strict)
+
+
+def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, sign, rules,
+                    max_shift, blur, fine, ppm, along_max=np.inf) -> np.ndarray:
+    """Crosses measured whole that show one bar only, measured again as a lone bar.
+
+    A one-armed cross whose short or blurred arms let the missing bar's halves borrow the
+    contrast of the shared central square passes the acceptance tests as a whole cross
+    (:func:`softplot.marks.measure.lone_bar` sees its missing halves at half the contrast
+    and more), and the missing bar in its model pulls the centre across the bar that is
+    there. Each measured two-armed cross (``arms`` 2) whose bars look unlike each other
+    (:func:`softplot.marks.measure.bar_share` below ``rules.bar_absent``) is fitted as a
+    lone bar (:func:`_one_arm_fits`) from its neighbours' leave-one-out prediction; where
+    one bar passes, correlates with its model at least :data:`ONE_BAR_MIN_SCORE` and the
+    other's fit finds less than :data:`ONE_BAR_ABSENT` of its contrast, the lone bar
+    replaces the whole cross's fit (position across the bar, the prediction along it;
+    ``arms`` 1). A whole cross, both bars seen, is left as it is. ``xy`` (N, 2) pixel
+    system, ``film`` (N, 2) mm, ``cov``: the reported and the independent-pixel
+    covariances; modified in place. Returns the indices of the crosses measured again.
+    """
+    st = np.array(status)
+    meas = np.where(st == "measured")[0]
+    q = meas[np.asarray(arms)[meas] == 2]
+    if q.size == 0 or meas.size < LONE_ARM_MIN_MEASURED or shape.kind != "cross":
+        return np.zeros(0, int)
+    # the fits only where the crosses' bars look unlike each other (a cheap regression)
+    share = bar_share(sc, shape, xy[q], A[q], blur if blur is not None else s0, sign)
+    q = q[np.nan_to_num(share, nan=1.0) < (rules or AcceptRules()).bar_absent]
+    if q.size == 0:
+        return np.zeros(0, int)
+    r = xy - grid.apply_h(Hm, film)
+    loo = r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])
+    rms = float(np.sqrt(np.mean(loo**2)))
+    if rms > along_max:
+        return np.zeros(0, int)
+    pos = np.searchsorted(meas, q)
+    target = xy[q] - loo[pos]  # the neighbours' prediction of each (pixel system)
+    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
+                       rules, max_shift, blur, fine, ppm, absent=ONE_BAR_ABSENT,
+                       min_score=ONE_BAR_MIN_SCORE)
+    ok = np.where(f1.ok)[0]
+    xy[q[ok]], cov[0][q[ok]], cov[1][q[ok]] = f1.xy[ok], f1.cov[ok], f1.cov_white[ok]
+    arms[q[ok]] = 1
+    return q[ok]
 
 
 #: film mm: four crosses measured on a grown lattice lie within this of the certificate's
