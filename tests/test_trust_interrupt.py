@@ -18,7 +18,10 @@ from softplot.synthetic import ScanSpec, write_scan
 @pytest.mark.skipif(sys.platform == "win32", reason="process-group SIGINT is POSIX")
 def test_batch_ctrl_c(tmp_path):
     src = tmp_path / "scans"
-    for i in range(8):
+    # enough scans that the batch cannot finish them all between the first result and the
+    # signal, even when the test's own process is slowed by a loaded machine
+    n = 32
+    for i in range(n):
         write_scan(src, "pentax-645", ScanSpec(dpi=300.0, scene="none"), seed=i, stem=f"s{i}")
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "softplot", "batch", str(src / "*.tif"), "--camera",
@@ -38,7 +41,7 @@ def test_batch_ctrl_c(tmp_path):
     with open(out / "summary.csv", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     done = {os.path.basename(r["scan"]) for r in rows if r["status"] == "done"}
-    assert done and len(done) < 8
+    assert done and len(done) < n
     finished = {f"{q.stem}.tif" for q in out.glob("s*.json")}
     assert done == finished  # exactly what finished is listed
     assert (out / "report.html").is_file()
