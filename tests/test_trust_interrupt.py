@@ -26,8 +26,11 @@ def test_batch_ctrl_c(tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "softplot", "batch", str(src / "*.tif"), "--camera",
            "pentax-645", "--out", str(out), "--workers", "1", "--quiet"]
+    # Ctrl-C as a terminal delivers it: to a process whose SIGINT has its default disposition,
+    # whatever the test runner's worker process inherited (an ignored SIGINT is inherited)
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+                         start_new_session=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.monotonic()
     while not (out / "s0.json").exists() and not (out / "s1.json").exists():
         assert p.poll() is None, p.communicate()
