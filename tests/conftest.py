@@ -92,3 +92,26 @@ def pytest_sessionfinish(session, exitstatus):
         tr.write_line(
             f"FAILED: detection sweep, pooled rate {100.0 * got / vis:.2f} % < "
             f"{100 * POOLED_RATE:.1f} % ({vis - got} of {vis} visible crosses not measured)")
+
+
+def across_over_bound(m: dict, truth: dict) -> float:
+    """The error of a measured one-armed cross ``m`` (detection JSON entry, scan pixels)
+    across its bar over the bar's one-dimensional bound: the per-axis Cramér-Rao bound of the
+    cross as drawn (its true arm length and line width, the render's blur and noise, the
+    truth's local contrast). Across the bar is the normal, in the pixel system, of the bar's
+    film axis as the truth mapping takes it there."""
+    import numpy as np
+
+    from softplot.marks.crb import centre_crb, effective_noise
+    from softplot.marks.template import MarkShape
+    from softplot.synthetic.mapping import TruthMapping
+
+    t = next(q for q in truth["marks"] if q["name"] == m["name"])
+    r, ppm = truth["render"], truth["dpi"] / 25.4
+    noise = effective_noise(r["noise_sigma"], truth["bit_depth"])
+    along = TruthMapping.from_truth(truth).jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][
+        :, 0 if t["arm_axis"] == "x" else 1]
+    nv = np.array([-along[1], along[0]]) / np.hypot(*along)
+    shape = MarkShape("cross", length=t["arm_length_mm"] * ppm, width=t["line_width_mm"] * ppm)
+    crb = centre_crb(shape, r["blur_sigma_px"], abs(t["contrast"]), noise, phases=2)
+    return float(np.array([m["x"] - t["x"], m["y"] - t["y"]]) @ nv) / crb

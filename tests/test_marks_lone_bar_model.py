@@ -11,13 +11,12 @@ import json
 import numpy as np
 import pytest
 
+from conftest import across_over_bound
 from softplot.io import Scan
 from softplot.marks import detect
 from softplot.marks import measure as M
-from softplot.marks.crb import centre_crb, effective_noise
 from softplot.marks.template import MarkShape, aperture
 from softplot.synthetic import ScanSpec, render_scan
-from softplot.synthetic.mapping import TruthMapping
 
 
 def _across_over_bound():
@@ -32,23 +31,11 @@ def _across_over_bound():
             doc = json.loads(json.dumps(detect(Scan.from_array(img, dpi=600),
                                                "rollei-6006").to_json()))
             tm = {m["name"]: m for m in truth["marks"]}
-            mp = TruthMapping.from_truth(truth)
-            r, ppm = truth["render"], truth["dpi"] / 25.4
-            noise = effective_noise(r["noise_sigma"], truth["bit_depth"])
             for m in doc["marks"]:
-                t = tm[m["name"]]
-                if t["arms"] != 1:
+                if tm[m["name"]]["arms"] != 1:
                     continue
                 assert m["status"] == "measured" and m["arms"] == 1, (seed, m["name"])
-                # across the bar (pixel system): the normal of the bar's film axis as mapped
-                along = mp.jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][
-                    :, 0 if t["arm_axis"] == "x" else 1]
-                nv = np.array([-along[1], along[0]]) / np.hypot(*along)
-                shape = MarkShape("cross", length=t["arm_length_mm"] * ppm,
-                                  width=t["line_width_mm"] * ppm)
-                crb = centre_crb(shape, r["blur_sigma_px"], abs(t["contrast"]), noise,
-                                 phases=2)
-                z.append(float(np.array([m["x"] - t["x"], m["y"] - t["y"]]) @ nv) / crb)
+                z.append(across_over_bound(m, truth))
     assert len(z) == 18
     return float(np.sqrt(np.mean(np.square(z))))
 

@@ -11,12 +11,11 @@ import json
 import numpy as np
 import pytest
 
+from conftest import across_over_bound
 from softplot.io import Scan
 from softplot.marks import detect, validation
-from softplot.marks.crb import centre_crb, effective_noise
 from softplot.marks.template import MarkShape
 from softplot.synthetic import ScanSpec, render_scan
-from softplot.synthetic.mapping import TruthMapping
 
 #: a Hasselblad reseau at 0.75 of its arm length, 500 dpi, blur 1.2 px: crosses about 7 px
 #: tip to tip, three of them one-armed
@@ -30,23 +29,11 @@ def _across(seed):
     doc = json.loads(json.dumps(detect(Scan.from_array(img, dpi=500),
                                        "hasselblad-mk70").to_json()))
     tm = {m["name"]: m for m in truth["marks"]}
-    mp = TruthMapping.from_truth(truth)
-    r, ppm = truth["render"], truth["dpi"] / 25.4
-    noise = effective_noise(r["noise_sigma"], truth["bit_depth"])
     out = []
     for m in doc["marks"]:
-        t = tm[m["name"]]
-        if t["arms"] != 1 or m["status"] != "measured":
+        if tm[m["name"]]["arms"] != 1 or m["status"] != "measured":
             continue
-        # across the bar (pixel system): the normal of the bar's film axis as mapped
-        along = mp.jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][
-            :, 0 if t["arm_axis"] == "x" else 1]
-        nv = np.array([-along[1], along[0]]) / np.hypot(*along)
-        shape = MarkShape("cross", length=t["arm_length_mm"] * ppm,
-                          width=t["line_width_mm"] * ppm)
-        crb = centre_crb(shape, r["blur_sigma_px"], abs(t["contrast"]), noise, phases=2)
-        out.append((m["name"], m["arms"],
-                    float(np.array([m["x"] - t["x"], m["y"] - t["y"]]) @ nv) / crb))
+        out.append((m["name"], m["arms"], across_over_bound(m, truth)))
     return out, doc, tm
 
 
