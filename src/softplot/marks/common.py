@@ -43,6 +43,19 @@ class DetectionError(SoftplotError):
     """The marks of the certificate cannot be found on the scan (message: expected vs found)."""
 
 
+def inverse_2x2(J: np.ndarray, min_det: float) -> np.ndarray:
+    """The inverses of a stack of 2 x 2 matrices ``J`` (K, 2, 2), by hand: NaN where
+    ``|det| < min_det`` or the inverse is not finite (a degenerate Jacobian gives NaN, not an
+    exception)."""
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    adj = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1),
+                    np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
+    with np.errstate(all="ignore"):
+        A = adj / det[:, None, None]
+    A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < min_det)] = np.nan
+    return A
+
+
 def as_scan(scan, dpi: float | None = None):
     """A :class:`softplot.io.Scan` from a Scan, a path or an array (pixel system)."""
     from softplot import io

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from softplot.marks import kernels
-from softplot.marks.common import median_rows
+from softplot.marks.common import inverse_2x2, median_rows
 
 __all__ = ["local_fit", "local_prediction", "outline", "position_affine", "remembered"]
 
@@ -329,13 +329,7 @@ def position_affine(film, xy, ok, ppm, k=24, with_position=False):
         out = np.full((M, 2, 2), np.nan), np.full(M, np.nan)
         return out + (np.full((M, 2), np.nan),) if with_position else out
     pos, grad, lev = local_fit(film, film[good], xy[good], k, degree=3, gradient=True)
-    J = grad @ np.diag([1.0 / ppm, -1.0 / ppm])
-    # 2 x 2 inverses by hand: a degenerate neighbourhood (collinear marks: a Jacobian near
-    # singular, |det| ~ 1 otherwise) gives NaN, not an exception
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    adj = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1),
-                    np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
-    with np.errstate(all="ignore"):
-        A = adj / det[:, None, None]
-    A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < 1e-6)] = np.nan
+    # a degenerate neighbourhood (collinear marks: a Jacobian near singular, |det| ~ 1
+    # otherwise) gives NaN
+    A = inverse_2x2(grad @ np.diag([1.0 / ppm, -1.0 / ppm]), 1e-6)
     return (A, lev, pos) if with_position else (A, lev)

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from softplot.marks import grid
+from softplot.marks.common import inverse_2x2
 from softplot.marks.measure import AcceptRules, bar_share, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
 from softplot.marks.neighbours import (
@@ -661,14 +662,7 @@ def model_affine(H, film, ppm):
     Jacobian is singular. Off by the film's deformation gradient only (a 100 um deformation
     over a 60 mm format: a few 1e-3), which turns and scales a symmetric cross without moving
     its centre."""
-    J = grid.h_jacobian(H, film) @ np.diag([1.0 / ppm, -1.0 / ppm])
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    adj = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], -1),
-                    np.stack([-J[:, 1, 0], J[:, 0, 0]], -1)], -2)
-    with np.errstate(all="ignore"):
-        A = adj / det[:, None, None]
-    A[~np.isfinite(A).all((1, 2)) | (np.abs(det) < 1e-12)] = np.nan
-    return A
+    return inverse_2x2(grid.h_jacobian(H, film) @ np.diag([1.0 / ppm, -1.0 / ppm]), 1e-12)
 
 
 def _three_arm_fits(sc, shape, target, Ag, s0, init_err, sign, rules, max_shift, fit_shape,
