@@ -222,3 +222,101 @@ def test_flat_scan_judges_as_all_patches_at_once_and_stops_at_the_first_rough(ro
     assert sum(read) == (next(m for _, m in chunks if m > first) if rough else len(c0))
     if rough and first < measure.FLAT_CHUNK_MIN:
         assert read == [measure.FLAT_CHUNK_MIN]
+
+
+def _bits(a) -> np.ndarray:
+    return np.asarray(a, np.float64).reshape(-1).view(np.int64)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("n", [1, 2, 3, 8, 13, 40, 41])
+def test_median1_is_numpys_median_to_the_bit(dtype, n):
+    """common.median1 (one partition) gives np.median's value in the array's dtype, ties,
+    odd and even lengths; with a NaN it is NumPy's NaN."""
+    from softplot.marks.common import median1
+
+    rng = np.random.default_rng(n)
+    for a in (rng.normal(0, 1, n), rng.integers(0, 4, n) * 0.1, np.full(n, 0.3)):
+        a = a.astype(dtype)
+        got, want = median1(a), np.median(a)
+        assert got.dtype == want.dtype and np.array_equal(_bits(got), _bits(want))
+    b = rng.normal(0, 1, n).astype(dtype)
+    b[n // 2] = np.nan
+    assert np.isnan(median1(b))
+
+
+def test_median_profile_is_numpys_columnwise_median_to_the_bit():
+    """geometry._median_profile (the rows' median by median_rows) is np.median over the
+    profiles (axis 0), sample by sample, for an odd and an even number of profiles."""
+    from softplot.marks.geometry import _median_profile
+
+    rng = np.random.default_rng(3)
+    for k in (5, 6, 21):
+        profiles = [rng.normal(0, 1, 57).astype(np.float32) for _ in range(k)]
+        want = np.median(np.stack(profiles), axis=0)
+        got = _median_profile(profiles)
+        assert got.dtype == want.dtype and np.array_equal(_bits(got), _bits(want))
+
+
+def _bar_share_whole(scan, shape, c, A, s, sign):
+    """measure.bar_share as it was: the bars' profiles evaluated over the whole patches."""
+    from softplot.marks.lsm import patch_frame, support_mask
+    from softplot.marks.measure import patches
+    from softplot.marks.template import aperture
+
+    n = len(c)
+    grow = float(1.0 / max(np.linalg.svd(A, compute_uv=False).min(), 1e-3))
+    reach = min(shape.extent + 2.5 * s + 1.25, 0.5 * shape.width + 6.0 * s + 6.0)
+    half = int(np.ceil(reach * grow + 2))
+    stack, origin = patches(scan, c, half)
+    u, v = patch_frame(origin, c, A, stack.shape)
+    ap = tuple(x[:, None, None] for x in aperture(A.astype(np.float32)))
+    bu, bv, core = shape.bars(u, v, np.float32(max(s, 0.3)), aperture=ap)
+    yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
+    m = (support_mask(shape, u, v, 2.5 * s + 1.25) & np.isfinite(stack)
+         & (np.maximum(np.abs(u), np.abs(v)) <= reach))
+    X = np.stack(np.broadcast_arrays(m.astype(np.float32), (xx - half) * m, (yy - half) * m,
+                                     (bu - core) * m, (bv - core) * m, core * m), -1)
+    X = X.reshape(n, -1, 6)
+    g = np.where(m, stack, 0.0).reshape(n, -1)
+    Xt = X.transpose(0, 2, 1)
+    N = np.matmul(Xt, X).astype(float)
+    rhs = np.matmul(Xt, g[..., None])[..., 0].astype(float)
+    scale = np.sqrt(np.maximum(np.einsum("nii->ni", N), 1e-12))
+    Ns = N / scale[:, :, None] / scale[:, None, :]
+    ok = np.abs(np.linalg.det(Ns)) > 1e-8
+    b = np.full((n, 6), np.nan)
+    if ok.any():
+        b[ok] = np.linalg.solve(Ns[ok], (rhs[ok] / scale[ok])[..., None])[..., 0] / scale[ok]
+    con = np.maximum(b[:, 3:5] * sign, 0.0)
+    with np.errstate(all="ignore"):
+        return np.where(con.max(1) > 0, con.min(1) / con.max(1), np.nan)
+
+
+@pytest.mark.parametrize("turn", [0.0, 0.3])
+def test_bar_share_evaluates_the_bars_only_where_it_regresses(turn):
+    """bar_share's bars evaluated at the pixels of the regression only (measure._bars_at)
+    give the shares of the bars over the whole patches to the last bit, over a scene
+    texture, with turned affines and a patch the scan's edge cuts; _bars_at's values are
+    those of the whole patches there and 0 elsewhere."""
+    from softplot.marks.lsm import patch_frame
+    from softplot.marks.measure import _bars_at, bar_share
+    from softplot.marks.template import aperture
+
+    sc, c, shape = _cross_grid_scan(rough=(0, 7, 20))
+    c = np.concatenate([c + [0.3, -0.2], [[3.0, 5.0]]])
+    ct, st = np.cos(turn), np.sin(turn)
+    A = np.broadcast_to(np.array([[ct, st], [-st, ct]]) * [[1.0], [0.97]], (len(c), 2, 2))
+    for s, sign in ((1.0, -1), (0.6, -1), (1.0, 1)):
+        got = bar_share(sc, shape, c, A, s, sign)
+        want = _bar_share_whole(sc, shape, c, np.array(A), s, sign)
+        if sign < 0:  # the crosses' polarity: most have a share
+            assert np.isfinite(got).sum() > len(c) // 2
+        assert np.array_equal(np.isnan(got), np.isnan(want))
+        assert np.array_equal(_bits(got[np.isfinite(got)]), _bits(want[np.isfinite(want)]))
+    u, v = patch_frame(np.zeros((len(c), 2)), c, np.array(A), (len(c), 31, 33))
+    m = (np.abs(u) < 5) | (np.abs(v) < 2)
+    ap = aperture(np.array(A, np.float32))
+    whole = shape.bars(u, v, np.float32(0.8), aperture=tuple(x[:, None, None] for x in ap))
+    for a, b in zip(_bars_at(shape, u, v, m, np.float32(0.8), ap), whole, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a[m], b[m]) and not a[~m].any()

@@ -18,7 +18,7 @@ from softplot.errors import SoftplotError
 
 __all__ = ["DetectionError", "as_scan", "parse_grid_part", "format_grid_part",
            "blank_check", "transform_json", "polarity_name", "polarity_signs", "MM_PER_INCH",
-           "median_rows"]
+           "median_rows", "median1"]
 
 MM_PER_INCH = 25.4
 
@@ -37,6 +37,21 @@ def median_rows(a: np.ndarray) -> np.ndarray:
         return p[:, h].copy()
     # the two middle ranks' mean, as NumPy takes it (their sum, halved, in the dtype)
     return (p[:, :h].max(1) + p[:, h]) / a.dtype.type(2)
+
+
+def median1(a) -> np.floating:
+    """``np.median(a)`` of a 1-D float array, the same value in its dtype, from one partition
+    (:func:`median_rows`' arithmetic; several times faster on the short profiles of a cross).
+    Empty arrays, other dtypes and arrays with NaN: NumPy's own."""
+    a = np.asarray(a)
+    n = a.shape[0] if a.ndim == 1 else 0
+    if n == 0 or a.dtype.kind != "f" or not np.isfinite(a).all():
+        return np.median(a)
+    h = n // 2
+    p = np.partition(a, h)
+    if n % 2:
+        return p[h]
+    return (p[:h].max() + p[h]) / a.dtype.type(2)
 
 
 class DetectionError(SoftplotError):

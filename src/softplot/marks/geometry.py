@@ -30,6 +30,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.special import erf, ndtr
 
+from softplot.marks.common import median1, median_rows
 from softplot.marks.template import MarkShape
 
 __all__ = ["MarkGeometry", "estimate_geometry", "width_candidates", "ARM_RANGE", "WIDTH_RANGE"]
@@ -112,7 +113,7 @@ class MarkGeometry:
 def _robust_std(v: np.ndarray) -> float:
     if len(v) < 3:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+    return float(1.4826 * median1(np.abs(v - median1(v))))
 
 
 def _box(x, b, c, a1, a2, s):
@@ -159,8 +160,9 @@ def _lm(resid_jac, p, lo, hi, iterations=30):
         a = np.where(active)[0]
         if a.size == 0:
             break
-        Jt = J[a].transpose(0, 2, 1)
-        M = Jt @ J[a]
+        Ja = J[a]
+        Jt = Ja.transpose(0, 2, 1)
+        M = Jt @ Ja
         g = (Jt @ r[a][..., None])[..., 0]
         M[:, diag, diag] += lam[a, None] * (M[:, diag, diag] + 1e-12)
         step, bad = _solve(M, -g)
@@ -205,12 +207,12 @@ def _along_start(u: np.ndarray, p: np.ndarray, lo: float, hi: float, centre: flo
     of an admissible length (``lo``, ``hi`` its least and greatest half length)."""
     du = float(u[1] - u[0])
     ps = uniform_filter1d(p, max(1, int(round(1.0 / du))))
-    b0 = float(np.median(np.concatenate([ps[: len(ps) // 8], ps[-len(ps) // 8:]])))
+    b0 = float(median1(np.concatenate([ps[: len(ps) // 8], ps[-len(ps) // 8:]])))
     # the arm's level beside the crossing (where a thin blurred line is darker)
     au = np.abs(u)
-    c_mid = float(np.median(ps[au <= max(lo, 2.0)])) - b0
+    c_mid = float(median1(ps[au <= max(lo, 2.0)])) - b0
     ring = (au <= max(lo, 2.0) + centre) & (au >= centre)
-    c0 = float(np.median(ps[ring])) - b0 if ring.sum() >= 2 else c_mid
+    c0 = float(median1(ps[ring])) - b0 if ring.sum() >= 2 else c_mid
     if not c0 > 0.3 * c_mid:  # the arms are shorter than the crossing's reach
         c0 = c_mid
     if not c0 > 0:
@@ -283,7 +285,7 @@ def _fit_across(v: np.ndarray, profiles, s: float, w0: float) -> list:
     out: list = [None] * len(profiles)
     p0, k_ok = [], []
     for i, q in enumerate(profiles):
-        b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+        b0 = float(median1(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
         j = int(np.argmax(q))
         c0 = float(q[j] - b0)
         if not c0 > 0:
@@ -364,7 +366,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
         # the blurred line's half width at half maximum across the bars: the blur it
         # implies (a Gaussian's is 1.18 sigma) starts the fits, and the crossing, darker
         # over about that reach plus two sigmas, is left out of them
-        hw = float(np.median([b[3] for b in bars]))
+        hw = float(median1(np.array([b[3] for b in bars], float)))
         s_g = max(hw / 1.18, 0.5)
         centre = max(centre, hw + 1.5 * s_g)
     else:
@@ -372,8 +374,9 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     if len(bars) >= 2:
         c = np.array([b[2] for b in bars])
         # bars without contrast (one-armed crosses, crosses under a dark sky) are left out
-        axis = [k for k, ck in zip(axis, c, strict=True) if ck >= 0.3 * np.median(c)]
-        bars = [b for b, ck in zip(bars, c, strict=True) if ck >= 0.3 * np.median(c)]
+        c_min = 0.3 * median1(c)
+        axis = [k for k, ck in zip(axis, c, strict=True) if ck >= c_min]
+        bars = [b for b, ck in zip(bars, c, strict=True) if ck >= c_min]
     if len(bars) < 2:
         return MarkGeometry(L0, w0, float("nan"), float("nan"), len(bars), "certificate")
     # one fit to the median of the bars' normalised profiles: robust to the few bars that
@@ -391,7 +394,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     arms_a = np.array([f[1] - f[0] for f in one if f is not None])
     sa = _robust_std(arms_a)
     offset = _centre_offset(one, axis, arm)
-    if len(arms_a) < 3 or not abs(float(np.median(arms_a)) - arm) <= max(
+    if len(arms_a) < 3 or not abs(float(median1(arms_a)) - arm) <= max(
             CONSISTENT[0] * arm, ARM_AGREE_PX):
         # the bars alone do not agree with their median profile: scene content along the
         # bars, not the marks
@@ -412,7 +415,7 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
         fm = []
         for q, f in zip(acr, fits, strict=True):
             if f is not None and f[2] > 0:
-                b0 = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+                b0 = float(median1(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
                 fm.append(np.interp(v + f[1], v, (q - b0) / f[2]))
         fw = _fit_across(v, _median_profile(fm), sb, w0)[0] if len(fm) >= 2 else None
         if fw is not None:
@@ -436,13 +439,13 @@ def _centre_offset(fits, axis, arm) -> tuple:
         mid = np.array([0.5 * (f[0] + f[1]) for f, a in zip(fits, axis, strict=True)
                         if f is not None and a == k])
         if len(mid) >= 3 and _robust_std(mid) <= CONSISTENT[0] * arm:
-            out[k] = float(np.median(mid))
+            out[k] = float(median1(mid))
     return (out[0], out[1])
 
 
 def _median_profile(profiles: list) -> np.ndarray:
     """The sample-wise median of equally sampled profiles."""
-    return np.median(np.stack(profiles), axis=0)
+    return median_rows(np.stack(profiles, 1))
 
 
 def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
@@ -485,7 +488,7 @@ def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
         vc = float(v[j])
         # the band across the bar: the blurred line's half maximum (a thin line under a
         # wide blur is several pixels wide), at least the drawn line
-        qb = float(np.median(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
+        qb = float(median1(np.concatenate([q[: len(q) // 6], q[-len(q) // 6:]])))
         half = q - qb > 0.5 * (q[j] - qb)
         lo_j, hi_j = j, j
         while lo_j > 0 and half[lo_j - 1]:
@@ -496,8 +499,8 @@ def _bar_profiles(grey_at, xy, A, u, v, grid, w0, lo_half, sign, H, V):
         band = np.abs(v - vc) <= bw
         p = _bilinear(win, rows[bar][band], cols[bar][band]).mean(0)
         n8 = max(len(p) // 8, 1)
-        b0 = float(np.median(np.concatenate([p[:n8], p[-n8:]])))
-        c = float(np.median(p[np.abs(u) <= max(lo_half, 2.0)])) - b0
+        b0 = float(median1(np.concatenate([p[:n8], p[-n8:]])))
+        c = float(median1(p[np.abs(u) <= max(lo_half, 2.0)])) - b0
 
         def columns(sel, r=rows[bar], k=cols[bar]):
             return _bilinear(win, r[:, sel], k[:, sel])

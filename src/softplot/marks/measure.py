@@ -1277,6 +1277,21 @@ def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.
     return out
 
 
+def _bars_at(shape: MarkShape, u, v, m, s, ap) -> tuple:
+    """:meth:`MarkShape.bars` of N patches (mark-frame ``u``, ``v`` (N, h, w) px, blur ``s``
+    px, the footprints ``ap`` of :func:`aperture`, (N,) each) evaluated at the pixels ``m``
+    (N, h, w) bool only, 0 elsewhere ((N, h, w) each): the profiles are elementwise,
+    so each value is the one the whole patches give, at a fraction of the work (the pixels
+    near a cross are a part of its patch)."""
+    ap_m = tuple(np.broadcast_to(x[:, None, None], u.shape)[m] for x in ap)
+    out = []
+    for b in shape.bars(u[m], v[m], s, aperture=ap_m):
+        a = np.zeros(u.shape, b.dtype)
+        a[m] = b
+        out.append(a)
+    return tuple(out)
+
+
 def bar_share(scan, shape: MarkShape, c: np.ndarray, A: np.ndarray, s: float,
               sign: int) -> np.ndarray:
     """The weaker bar's contrast over the stronger's (N,) for crosses at ``c`` (N, 2, pixel
@@ -1299,11 +1314,11 @@ def bar_share(scan, shape: MarkShape, c: np.ndarray, A: np.ndarray, s: float,
     half = int(np.ceil(reach * grow + 2))
     stack, origin = patches(scan, c, half)
     u, v = patch_frame(origin, c, A, stack.shape)
-    ap = tuple(x[:, None, None] for x in aperture(A.astype(np.float32)))
-    bu, bv, core = shape.bars(u, v, np.float32(max(s, 0.3)), aperture=ap)
-    yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
     m = (support_mask(shape, u, v, 2.5 * s + 1.25) & np.isfinite(stack)
          & (np.maximum(np.abs(u), np.abs(v)) <= reach))
+    bu, bv, core = _bars_at(shape, u, v, m, np.float32(max(s, 0.3)),
+                            aperture(A.astype(np.float32)))
+    yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
     X = np.stack(np.broadcast_arrays(m.astype(np.float32), (xx - half) * m, (yy - half) * m,
                                      (bu - core) * m, (bv - core) * m, core * m), -1)
     X = X.reshape(n, -1, 6)
