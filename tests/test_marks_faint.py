@@ -20,15 +20,19 @@ def _faint_case():
     return dataclasses.replace(case, spec=spec)
 
 
-def test_thin_faint_crosses_are_measured_by_their_summed_evidence():
-    """Without the matched-filter acceptance the scan is refused (no cross measured); with
-    it most visible crosses are measured, each with its right row and column and within its
-    truth tolerance, and none is claimed where no cross shows."""
+def test_thin_faint_crosses_are_measured_by_their_summed_evidence(monkeypatch):
+    """Without the matched-filter acceptance (and the faint grid judged as a whole,
+    :mod:`softplot.marks.faint_grid`, which would measure it instead) the scan is refused (no
+    cross measured); with it most visible crosses are measured, each with its right row and
+    column and within its truth tolerance, and none is claimed where no cross shows."""
+    from softplot.marks import faint_grid
     from softplot.marks.measure import AcceptRules
     from softplot.synthetic.sweep import run_case
 
     case = _faint_case()
-    before, _ = run_case(case, detect_kw={"rules": AcceptRules(min_snr=np.inf)})
+    with monkeypatch.context() as mp:
+        mp.setattr(faint_grid, "FAINT_GRID_K", 0.0)
+        before, _ = run_case(case, detect_kw={"rules": AcceptRules(min_snr=np.inf)})
     assert not before.result  # per-pixel contrast alone refuses every cross
     sc, det = run_case(case)
     assert sc.result, sc.error

@@ -28,7 +28,8 @@ hand-over object (pixel system throughout, film mm for the certificate):
    :class:`~softplot.marks.measurement.Measurement`): least-squares template matching at full
    resolution with robust weights and acceptance tests, the scene under each cross from the
    grey opening or jointly estimated (:mod:`softplot.marks.scene`), refits with the
-   neighbours' affine;
+   neighbours' affine; where too few crosses hold one by one, all of them fitted alike and
+   accepted together where they lie on a projective grid (:mod:`softplot.marks.faint_grid`);
 7. validation (:mod:`softplot.marks.validation`, :class:`~softplot.marks.validation.Validation`):
    the global projective model, the outlier test against the neighbours, the rescue of
    rejected and refused crosses from three half-arms or one bar; measured crosses that lie
@@ -57,6 +58,7 @@ from softplot.marks.common import (
     polarity_name,
     transform_json,
 )
+from softplot.marks.faint_grid import faint_grid
 from softplot.marks.fiducial import detect_fiducials
 from softplot.marks.lattice import (
     MIN_PART,
@@ -339,6 +341,11 @@ def _measure(sc, pr, res, shape0, ppm, rules, scene, timings, t0, min_measured):
         few_mm = SIMILAR_TOL_MM if min_measured < MIN_DENSE else few_mm
     timings["lsm"] = time.perf_counter() - t0
     v = validate(sc, pr, m, rules)
+    if sum(st == "measured" for st in m.status) < min(min_measured, res.count):
+        # too few crosses hold one by one: all of them, fitted alike, as a faint grid
+        fg = faint_grid(sc, shape, pr, inside, rules, m)
+        if fg is not None:
+            m, v = fg, validate(sc, pr, fg, rules)
     return geom, m, v, pr, (min_measured, few_mm)
 
 
