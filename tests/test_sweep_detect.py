@@ -536,3 +536,90 @@ def test_crosses_below_detection_are_neither_missed_nor_claims_unless_gross():
     r = row(status, xy.copy())
     assert r["measured_detectable_rate"] == pytest.approx(98 / 99)
     assert any("of detectable" in m for m in misses(r))
+
+
+# -- what the stored scan shows: the signal its clipping leaves ---------------------------
+
+
+def _clipped_busy_render():
+    """A noise-free busy render (seed 145's spec at 400 dpi) whose white roads the scan
+    saturates: (truth, scene without marks unclipped, per visible cross the share of its
+    signal the stored scan keeps, exactly: (clip(M) - clip(S)) over (M - S) in energy, from
+    four renders)."""
+    from dataclasses import replace
+
+    from softplot.synthetic.sweep import _pitch_px
+
+    case = make_case(145)
+    spec = replace(case.spec, noise_sigma=0.0, bits=32, dpi=400.0)
+    shown = render_scan(case.camera, spec, 145)[0] - render_scan(case.camera, spec, 145,
+                                                                  marks=False)[0]
+    img, truth = render_scan(case.camera, spec, 145, clip=False)
+    scene = render_scan(case.camera, spec, 145, marks=False, clip=False)[0]
+    full = img - scene
+    h = int(0.45 * _pitch_px(truth))
+    share = {}
+    for m in truth["marks"]:
+        if m["kind"] == "reseau" and m["state"] == "visible":
+            x, y = int(round(m["x"])), int(round(m["y"]))
+            win = np.s_[max(0, y - h): y + h + 1, max(0, x - h): x + h + 1]
+            share[m["name"]] = float(np.sqrt(np.sum(shown[win] ** 2) / np.sum(full[win] ** 2)))
+    truth["render"]["noise_sigma"] = 0.01  # the noise the ratio is taken against
+    return truth, scene, share
+
+
+def test_the_snr_counts_the_signal_the_stored_scan_keeps():
+    """With the scene without marks, ``mark_snr`` scales each cross's ratio by the share of
+    its signal that survives the scan's clipping: the share the renderer's own clipped and
+    unclipped images show (within 0.01), from none (crosses on saturated roads) to all."""
+    from softplot.synthetic.sweep import mark_snr
+
+    truth, scene, share = _clipped_busy_render()
+    old, new = mark_snr(truth), mark_snr(truth, 0.0, scene)
+    got = {k: new[k][0] / old[k][0] for k in old}
+    assert set(got) == set(share)
+    dev = max(abs(got[k] - share[k]) for k in share)
+    assert dev < 0.01, dev
+    assert sum(v < 0.05 for v in share.values()) >= 8
+    assert sum(v > 0.99 for v in share.values()) >= 50
+    assert all(new[k][1:] == old[k][1:] for k in old)  # the thresholds are the same
+
+
+def test_a_cross_the_clipping_erased_is_below_detection():
+    """Scored with the signal the stored scan keeps, a missed cross whose signal the clipping
+    erased is below detection, not a detectable cross missed (with the unclipped scene's
+    contrast it was one); a cross whose signal survives, missed, is still a miss; a gross
+    measurement of an erased cross is a claim below detection."""
+    from types import SimpleNamespace
+
+    from softplot.synthetic.sweep import aggregate, identifiable, mark_snr, score
+
+    truth, scene, share = _clipped_busy_render()
+    ms = truth["marks"]
+    erased = [i for i, m in enumerate(ms) if share.get(m["name"], 1.0) < 0.02]
+    kept = [i for i, m in enumerate(ms) if share.get(m["name"], 0.0) > 0.99]
+    assert len(erased) >= 5 and kept
+    xy = np.array([[m["x"], m["y"]] for m in ms])
+    bounds = {m["name"]: 0.01 for m in ms}
+
+    def row(snr, status, xy):
+        det = SimpleNamespace(name=[m["name"] for m in ms], kind=["reseau"] * len(ms),
+                              status=status, reason=[""] * len(ms), xy=xy,
+                              sigma_xy=np.full((len(ms), 2), 0.01))
+        sc = score(det, truth, bounds, identifiable(truth, snr), snr)
+        return aggregate([(make_case(0), sc)])["all"]
+
+    old, new = mark_snr(truth), mark_snr(truth, 0.0, scene)
+    status = ["missing" if i in erased else "measured" for i in range(len(ms))]
+    r_new, r_old = row(new, status, xy.copy()), row(old, status, xy.copy())
+    assert r_new["measured_detectable_rate"] == 1.0
+    assert r_new["below"] - r_old["below"] >= len(erased)
+    assert r_old["measured_detectable_rate"] < 1.0  # the unclipped contrast: missed
+    assert r_new["measured_rate"] == r_old["measured_rate"] < 1.0  # of visible: unchanged
+    status[kept[0]] = "missing"
+    assert row(new, status, xy.copy())["measured_detectable_rate"] < 1.0
+    off = xy.copy()
+    off[erased[0]] += (1.5, 0.0)
+    r = row(new, ["measured"] * len(ms), off)
+    assert r["claimed_below"] == 1 and r["gross"] == 1
+    assert row(old, ["measured"] * len(ms), off)["claimed_below"] == 0

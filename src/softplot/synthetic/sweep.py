@@ -452,7 +452,8 @@ def _bounds(case: Case, truth: dict, img_grey: np.ndarray | None, jpeg_rms: floa
 
 
 def _mark_template(length: float, width: float, blur: float, A: np.ndarray,
-                   axis: str | None = None, phases: int = 4) -> np.ndarray:
+                   axis: str | None = None, phases: int = 4,
+                   offsets: np.ndarray | None = None) -> np.ndarray:
     """The blurred cross (or one bar of it) as the render draws it, on the pixel grid:
     ``(phases, n, n)`` values in [0, 1] (1 on the mark), each plane a square of pixels
     (pixel system, rows down) around the centre at one sub-pixel phase.
@@ -460,14 +461,17 @@ def _mark_template(length: float, width: float, blur: float, A: np.ndarray,
     ``length``, ``width``: tip-to-tip bar length and line width (px in the mark frame);
     ``blur``: Gaussian sigma (px) of the scanner, the square pixel footprint added as in LSM's
     model (:mod:`softplot.marks.template`); ``A``: the pixel -> mark-frame affine; ``axis``:
-    None for a cross, "x" / "y" for the bar along film x / y of a one-armed cross.
+    None for a cross, "x" / "y" for the bar along film x / y of a one-armed cross;
+    ``offsets``: (phases, 2) the centres' x, y (pixel system) from the planes' middle pixel,
+    in [-0.5, 0.5] (None: ``phases`` seeded random phases).
     """
     from softplot.marks.template import aperture, box_pixel_profile, box_profile
 
     grow = 1.0 / max(float(np.linalg.svd(A, compute_uv=False).min()), 1e-3)
     half = int(np.ceil(0.5 * length * grow + 5 * blur + 4))
     yy, xx = np.mgrid[-half: half + 1, -half: half + 1].astype(np.float64)
-    ph = np.random.default_rng(0).uniform(-0.5, 0.5, (phases, 2))
+    ph = (np.random.default_rng(0).uniform(-0.5, 0.5, (phases, 2)) if offsets is None
+          else np.asarray(offsets, float).reshape(-1, 2))
     dx = xx[None] - ph[:, 0, None, None]
     dy = yy[None] - ph[:, 1, None, None]
     u = A[0, 0] * dx + A[0, 1] * dy
@@ -496,7 +500,8 @@ def _template_energy(T: np.ndarray) -> tuple[float, float]:
     return e, math.sqrt(max(float(np.linalg.det(lam)), 0.0))
 
 
-def mark_snr(truth: dict, jpeg_rms: float = 0.0) -> dict[str, tuple[float, float, float]]:
+def mark_snr(truth: dict, jpeg_rms: float = 0.0,
+             scene: np.ndarray | None = None) -> dict[str, tuple[float, float, float]]:
     """Matched-filter signal-to-noise ratio of every visible reseau cross of a render and the
     ratios it must reach to be detectable: ``{name: (snr, threshold in its cell, threshold in
     the whole scan)}``.
@@ -509,6 +514,12 @@ def mark_snr(truth: dict, jpeg_rms: float = 0.0) -> dict[str, tuple[float, float
     the noise: no detector sees the cross better. The thresholds are
     :func:`detection_threshold` over the cross's cell (a disc of a quarter pitch around it:
     where the score takes a measurement for this cross) and over the whole scan.
+
+    ``scene``: the render's grey scene without marks, unclipped (pixel system, as
+    :func:`render_case` gives it for a busy render). With it the ratio counts only the signal
+    that survives in the stored scan: it is scaled by :func:`surviving_signal`, the share of
+    the mark's signal that the scan's clipping to its grey range leaves (a cross on a white
+    road saturated in the scan shows little or nothing of its darkening).
     """
     ppm, noise, vis, A = _visible_marks(truth, jpeg_rms)
     if not vis:
@@ -526,9 +537,56 @@ def mark_snr(truth: dict, jpeg_rms: float = 0.0) -> dict[str, tuple[float, float
         T = _mark_template(arm * ppm, lw * ppm, blur, np.mean(A[idx], axis=0), axis)
         e, rough = _template_energy(T)
         t_cell, t_scan = detection_threshold(np.array([cell, scan]), rough)
-        for i in idx:
-            snr = abs(vis[i]["contrast"]) * math.sqrt(e) / noise
+        share = (np.ones(len(idx)) if scene is None else
+                 surviving_signal(truth, scene, [vis[i] for i in idx], A[idx]))
+        for i, f in zip(idx, share, strict=True):
+            snr = abs(vis[i]["contrast"]) * math.sqrt(e) * f / noise
             out[vis[i]["name"]] = (float(snr), float(t_cell), float(t_scan))
+    return out
+
+
+def surviving_signal(truth: dict, scene: np.ndarray, marks: list[dict],
+                     A: np.ndarray) -> np.ndarray:
+    """The share of each cross's signal that survives in the stored scan: ``(K,)`` in [0, 1].
+
+    ``scene``: the render's grey scene without marks, unclipped and noise-free (pixel
+    system); ``marks``: truth entries of crosses of one shape (pixel system), ``A`` their
+    pixel -> mark-frame affines (K, 2, 2). The render draws a cross over the scene ``S`` as
+    ``M = S + (mark_level - S) opacity T`` (``T`` :func:`_mark_template` at the cross's own
+    sub-pixel position) and the scanner stores both clipped to its grey range ``[0, top]``:
+    the share is ``||clip(M) - clip(S)|| / ||M - S||`` over the cross's square. 1 where
+    nothing clips. ``top`` is the grey of full scale in every channel (the luma of the orange
+    mask for a masked negative): a grey approximation of per-channel clipping. Quantisation is
+    not applied: it is in the noise the ratio is taken against (``LSB^2 / 12``), and the
+    noise dithers it. Crosses whose square leaves the scan are taken over the part inside.
+    """
+    from softplot.synthetic.scan import LUMA
+
+    r, ppm = truth["render"], truth["dpi"] / 25.4
+    mask = r.get("orange_mask")
+    top = float(np.dot(LUMA, mask)) if mask else 1.0
+    op = float(truth.get("spec", {}).get("mark_opacity", 1.0))
+    m0 = marks[0]
+    xy = np.array([[m["x"], m["y"]] for m in marks])
+    c = np.round(xy).astype(int)
+    T = _mark_template(m0["arm_length_mm"] * ppm, m0["line_width_mm"] * ppm,
+                       r["blur_sigma_px"], np.mean(A, axis=0),
+                       m0.get("arm_axis") if m0["arms"] == 1 else None,
+                       offsets=xy - c)
+    h = T.shape[1] // 2
+    H, W = scene.shape
+    out = np.ones(len(marks))
+    for k, (x, y) in enumerate(c):
+        y0, y1, x0, x1 = max(y - h, 0), min(y + h + 1, H), max(x - h, 0), min(x + h + 1, W)
+        if y0 >= y1 or x0 >= x1:
+            continue
+        S = scene[y0:y1, x0:x1].astype(np.float64)
+        t = T[k, y0 - (y - h): y1 - (y - h), x0 - (x - h): x1 - (x - h)]
+        M = S + (r["mark_level"] - S) * op * t
+        full = float(np.sum((M - S) ** 2))
+        if full > 0:
+            kept = np.clip(M, 0.0, top) - np.clip(S, 0.0, top)
+            out[k] = math.sqrt(float(np.sum(kept * kept)) / full)
     return out
 
 
@@ -910,7 +968,7 @@ def run_case(case: Case, detect_kw: dict | None = None, cache=None) -> tuple[Sco
     from softplot.marks import detect
 
     img, truth, scene, jpeg_rms = render_case(case, cache)
-    snr = mark_snr(truth, jpeg_rms)
+    snr = mark_snr(truth, jpeg_rms, scene)
     bits = truth["bit_depth"] if img.dtype == np.uint16 else 8
     scan = Scan.from_array(img, dpi=truth["dpi"], bit_depth=bits)
     t0 = time.perf_counter()
