@@ -584,17 +584,18 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
 
     A measured cross departing from its neighbours' prediction by more than
     :data:`SECOND_LOOK_SPREAD` times the robust spread of the measured crosses' departures
-    (:func:`robust_spread`, about 1.7 standard deviations of them) and the outlier test's
-    floor ``floor_px`` (px, (M,)) is fitted again from the prediction four times, each time
-    without one half-arm (as :func:`rescue` fits, the affine the neighbours predict held, the
-    blur held at ``blur``). The best-correlated refit that passes the acceptance tests, is as
+    (:func:`robust_spread`, about 1.7 standard deviations of them) and the outlier test's floor
+    ``floor_px`` (px, (M,)) is fitted again from the prediction four times, each time without
+    one half-arm (as :func:`rescue` fits, the affine the neighbours predict held, the blur held
+    at ``blur``; at the grid's corners and outline with the affine of ``Hm`` held and free,
+    :func:`_look_groups`). The best-correlated refit that passes the acceptance tests, is as
     precise as :func:`rescue` requires, lies within that reach of the prediction and at most
     half as far from it as the first fit, and is better supported than the first fit (its
     independent-pixel sigma no larger) replaces the first fit: three half-arms clear of the
-    scene content measure the cross, where the first fit took the content for an arm. (A
-    clean cross's three half-arms measure it less precisely than its four: its first fit
-    stays; a refit chosen only for lying nearer the prediction would bias the departures
-    the scan's variance factor and the lone bars' sigmas along them are taken from.)
+    scene content measure the cross, where the first fit took the content for an arm. (A clean
+    cross's three half-arms measure it less precisely than its four: its first fit stays; a
+    refit chosen only for lying nearer the prediction would bias the departures the scan's
+    variance factor and the lone bars' sigmas along them are taken from.)
     ``film`` (M, 2) mm; ``xy`` (M, 2) pixel system; ``cov`` the reported and the
     independent-pixel covariances (M, 2, 2) px^2 each; ``sigma`` (M,) px the independent-pixel
     precision; ``A`` (M, 2, 2) the fitted affines (pixel -> mark frame); ``Hm`` (3, 3) the
@@ -619,7 +620,7 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
     cand, dev, reach = meas[sel], dev[sel], reach[sel]
     target = grid.apply_h(Hm, film[cand]) + pred[sel]
     best = np.full(cand.size, -np.inf)
-    for grp, Ag, fit_shape in _held_groups(film, xy, st == "measured", ppm, A, cand):
+    for grp, Ag, fit_shape in _look_groups(film, xy, st == "measured", ppm, A, cand, Hm):
         for f2 in _three_arm_fits(sc, shape, target[grp], Ag, s0, init_err, sign, rules,
                                   max_shift, fit_shape, scene_tv, blur, gain_ref):
             d = np.hypot(*(f2.xy - target[grp]).T)
@@ -632,6 +633,19 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
                 best[grp[j]] = f2.score[j]
                 xy[i], cov[0][i], cov[1][i] = f2.xy[j], f2.cov[j], f2.cov_white[j]
     return cand[np.isfinite(best)]
+
+
+def _look_groups(film, xy, ok, ppm, A, ids, H):
+    """The groups of :func:`_held_groups` for :func:`second_look`'s refits of the crosses
+    ``ids``: those whose neighbours do not surround them (at the grid's corners and along its
+    outline) fitted twice, with the affine of the measured crosses' projective model ``H``
+    (3, 3, film mm -> pixel system) held and free from ``A`` (M, 2, 2). Held, the three
+    half-arms of a corner cross cannot turn onto a road beside its bars (sweep render 145's
+    R7C0, 4.1 -> 1.5 px off its truth); free, the refit of render 452's corner cross R10C10
+    correlates better and lies nearer its truth (1.03 px off with the affine held only): the
+    better-correlated refit is taken."""
+    groups = _held_groups(film, xy, ok, ppm, A, ids, H=H)
+    return groups + [g for g in _held_groups(film, xy, ok, ppm, A, ids) if g[2]]
 
 
 def _held_groups(film, xy, ok, ppm, A, ids, H=None):
