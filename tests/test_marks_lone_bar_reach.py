@@ -1,54 +1,92 @@
-"""A lone bar's position along it is its neighbours' prediction; where that prediction
-extrapolates (a corner of a small grid), its reported standard deviation must grow with it."""
+"""A lone bar's position along it is its neighbours' prediction; its reported variance along
+the bar is that prediction's (``validation.prediction_cov``: the measured crosses' own errors
+sent through it exactly, growing where it extrapolates, e.g. at a corner of a small grid)."""
 import numpy as np
 
 from softplot.marks import grid
-from softplot.marks.neighbours import local_fit, local_prediction
-from softplot.marks.validation import h_parameter_jacobian, prediction_reach
+from softplot.marks.neighbours import local_fit
+from softplot.marks.validation import h_parameter_jacobian, prediction_cov
 
 # a Pentax-like 3 x 3 grid (film mm) at about 3000 dpi, mildly projective
 H = np.array([[120.0, 1.5, 3000.0], [-1.2, 119.0, 2500.0], [2e-4, -1e-4, 1.0]])
 FILM = np.array([[x, y] for y in (-17.0, 0.0, 17.0) for x in (-23.0, 0.0, 23.0)])
 # six two-armed crosses measured in an L; R0C2 (index 2) is the corner they extrapolate to
 MEAS = np.array([1, 1, 0, 1, 0, 0, 1, 1, 1], bool)
+# a 7 x 9 grid with a gap: a cross inside it, surrounded by its neighbours
+BIG = np.array([[x, y] for y in np.arange(-15.0, 16.0, 5.0) for x in np.arange(-20.0, 21.0, 5.0)])
 
 
-def _normalised_errors(q, trials=300, noise_px=0.3, use_reach=True):
-    """The lone bar's along-bar prediction error over the standard deviation lone_arms gives
-    it (the leave-one-out RMS of the measured crosses' residuals, times the reach), pooled
-    over noise draws on the measured crosses' positions (pixel system)."""
-    rng = np.random.default_rng(5)
-    sig = np.ones(MEAS.sum())
-    z2 = []
+def _covs(n, seed):
+    """Unequal, correlated covariances (n, 2, 2) px^2 (pixel system) of n crosses."""
+    a = 0.2 * np.random.default_rng(seed).standard_normal((n, 2, 2))
+    return a @ a.transpose(0, 2, 1) + 0.01 * np.eye(2)
+
+
+def _prediction_errors(q, film, meas, C, trials=1500, seed=5):
+    """The prediction of cross ``q`` from the crosses ``meas`` (the global model fitted to
+    them, plus a local quadratic of their residuals: lone_arms' target) minus its truth,
+    over noise draws of covariance ``C`` on the measured crosses (pixel system, (trials, 2))."""
+    rng = np.random.default_rng(seed)
+    L = np.linalg.cholesky(C)
+    truth = grid.apply_h(H, film)
+    out = []
     for _ in range(trials):
-        xy = grid.apply_h(H, FILM) + noise_px * rng.standard_normal((9, 2))
-        Hm = grid.projective_fit(FILM[MEAS], xy[MEAS])
-        r = xy - grid.apply_h(Hm, FILM)
-        loo = r[MEAS] - local_prediction(FILM[MEAS], r[MEAS], sigma=sig)
-        sd = float(np.sqrt(np.mean(loo**2)))
-        if use_reach:
-            sd *= prediction_reach(FILM[[q]], FILM[MEAS], Hm, sig)[0]
-        target = grid.apply_h(Hm, FILM[[q]]) + local_fit(FILM[[q]], FILM[MEAS], r[MEAS], 16, 2,
+        xy = truth.copy()
+        xy[meas] += np.einsum("nij,nj->ni", L, rng.standard_normal((meas.sum(), 2)))
+        Hm = grid.projective_fit(film[meas], xy[meas])
+        r = xy - grid.apply_h(Hm, film)
+        sig = np.sqrt(0.5 * (C[:, 0, 0] + C[:, 1, 1]))
+        target = grid.apply_h(Hm, film[[q]]) + local_fit(film[[q]], film[meas], r[meas], 16, 2,
                                                           n_sigma=sig)
-        e = target[0] - grid.apply_h(H, FILM[[q]])[0]
-        z2.append(np.mean(e**2) / sd**2)
-    return float(np.sqrt(np.mean(z2)))
+        out.append(target[0] - truth[q])
+    return np.array(out)
 
 
-def test_a_corner_bar_extrapolated_by_the_model_gets_an_honest_sigma_along():
-    without = _normalised_errors(2, use_reach=False)
-    honest = _normalised_errors(2)
-    assert without > 2.0  # the premise: the leave-one-out RMS alone is far too optimistic
-    assert 0.8 < honest < 1.4
+def _normalised(e, C):
+    """RMS of the errors ``e`` (trials, 2) along x and y over the standard deviations the
+    covariance ``C`` (2, 2) gives them."""
+    return np.sqrt(np.mean(e**2, 0) / np.diag(C))
 
 
-def test_the_reach_is_one_where_the_neighbours_surround_the_bar():
-    full = np.ones(9, bool)
-    full[4] = False
-    reach = prediction_reach(FILM[[4]], FILM[full], H, np.ones(8))
-    assert abs(reach[0] - 1.0) < 1e-12
-    corner = prediction_reach(FILM[[2]], FILM[MEAS], H, np.ones(6))
-    assert corner[0] > 1.6
+def test_a_corner_bar_extrapolated_by_the_model_gets_an_honest_variance():
+    C = _covs(MEAS.sum(), 1)
+    e = _prediction_errors(2, FILM, MEAS, C)
+    sig = np.sqrt(0.5 * (C[:, 0, 0] + C[:, 1, 1]))
+    P = prediction_cov(FILM[[2]], FILM[MEAS], H, sig, C)[0]
+    assert np.all(np.abs(_normalised(e, P) - 1.0) < 0.1), _normalised(e, P)
+    # the premise: the measured crosses' leave-one-out departures (own noise included) are
+    # no measure of an extrapolation; a corner's prediction is far worse than theirs
+    rms = np.sqrt(np.mean(np.einsum("nii->ni", C)))
+    assert np.all(np.sqrt(np.diag(P)) > 1.5 * rms)
+
+
+def test_inside_the_grid_the_variance_is_the_neighbours_noise_sent_through():
+    keep = np.ones(len(BIG), bool)
+    q = 31  # inside, away from the outline
+    keep[q] = False
+    C = _covs(keep.sum(), 2)
+    e = _prediction_errors(q, BIG, keep, C, trials=1000)
+    sig = np.sqrt(0.5 * (C[:, 0, 0] + C[:, 1, 1]))
+    P = prediction_cov(BIG[[q]], BIG[keep], H, sig, C)[0]
+    assert np.all(np.abs(_normalised(e, P) - 1.0) < 0.1), _normalised(e, P)
+    # a prediction averages its neighbours' errors: smaller than theirs
+    assert np.trace(P) < 0.5 * np.median(np.einsum("nii->n", C))
+    corner = prediction_cov(FILM[[2]], FILM[MEAS], H, np.ones(6), _covs(6, 2))[0]
+    assert np.trace(P) < np.trace(corner)
+
+
+def test_a_query_among_the_crosses_is_left_out_of_its_own_prediction():
+    """A cross measured whole and fitted again as a lone bar is predicted from the others:
+    its own error does not enter (the local fit leaves it out; the model's refit takes a
+    1/M share of it)."""
+    C = _covs(len(BIG), 3)
+    sig = np.ones(len(BIG))
+    q = 31
+    C2 = C.copy()
+    C2[q] *= 100.0
+    a = prediction_cov(BIG[[q]], BIG, H, sig, C)[0]
+    b = prediction_cov(BIG[[q]], BIG, H, sig, C2)[0]
+    assert np.allclose(a, b, rtol=0.05, atol=1e-6)
 
 
 def test_parameter_jacobian_matches_finite_differences():

@@ -1402,7 +1402,7 @@ def _other_bar_absent(fits, sign: int, share: float, strict: bool = False,
 
 def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                     sign: int, rules: AcceptRules | None = None, *, max_shift: float,
-                    cnr_ref: float | None = None, along_sd: np.ndarray | float = 1.0,
+                    cnr_ref: float | None = None, pred_cov: np.ndarray | None = None,
                     blur: float | None = None, gain_ref: float | None = None,
                     absent: float | None = None, min_score: float | None = None) -> Fine:
     """Crosses of which only one bar is visible (the other faded, aliased, scratched or
@@ -1429,8 +1429,9 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     The bar fixes the centre across it only: its tips are the part of a cross that fades
     first, and its length is not known (a certificate's is a starting guess). So the
     centre is the fit's across the bar and the prediction ``c0`` along it; the covariance
-    (pixel system) is the fit's variance across the bar and ``along_sd**2`` (px^2, the
-    prediction's error, per cross or one value) along it. The fit across the bar is a
+    (pixel system) is the fit's variance across the bar and, along it, the variance of
+    ``c0`` along the bar: ``t^T pred_cov t`` (``pred_cov`` (N, 2, 2) px^2, pixel system, the
+    prediction's covariance; ``t`` the bar's unit vector; None: 1 px^2). The fit across the bar is a
     second one with the model of the bar alone over all its pixels (:func:`_bar_refit`;
     the first one's where that fails). ``Fine.arms`` is 1 where a bar
     was measured, 0 elsewhere.
@@ -1439,7 +1440,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     c0 = np.asarray(c0, float).reshape(-1, 2)
     n = len(c0)
     A0 = np.broadcast_to(np.asarray(A0, float), (n, 2, 2)).copy()
-    along_sd = np.broadcast_to(np.asarray(along_sd, float), (n,))
+    pred_cov = (np.broadcast_to(np.eye(2), (n, 2, 2)) if pred_cov is None
+                else np.asarray(pred_cov, float).reshape(n, 2, 2))
     out = Fine(np.full((n, 2), np.nan), np.full((n, 2, 2), np.nan), np.full(n, np.nan),
                np.full(n, np.nan), np.zeros(n, bool), ["no bar found"] * n, None,
                A0.copy(), None, 0, np.full(n, np.nan), np.zeros(n, int),
@@ -1504,8 +1506,9 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
             var_n = float(nv @ res.cov[i] @ nv)
             var_w = float(nv @ res.cov_white[i] @ nv)
         out.xy[i] = c0[i] + off * nv
-        out.cov[i] = var_n * np.outer(nv, nv) + float(along_sd[i]) ** 2 * np.outer(tv, tv)
-        out.cov_white[i] = var_w * np.outer(nv, nv) + float(along_sd[i]) ** 2 * np.outer(tv, tv)
+        var_t = float(tv @ pred_cov[i] @ tv)
+        out.cov[i] = var_n * np.outer(nv, nv) + var_t * np.outer(tv, tv)
+        out.cov_white[i] = var_w * np.outer(nv, nv) + var_t * np.outer(tv, tv)
         out.score[i], out.cnr[i], out.s[i] = res.score[i], res.cnr[i], res.s[i]
         out.ok[i], out.reason[i], out.arms[i] = True, "", 1
     for i in np.where(passed.all(1))[0]:

@@ -34,17 +34,23 @@ from softplot.marks.neighbours import (
     position_affine,
     remembered,
 )
-from softplot.marks.precision import variance_factor
+from softplot.marks.precision import (
+    DEFORMATION_FLOOR_UM,
+    GLOBAL_DEFORMATION_FLOOR_UM,
+    MIN_MARKS,
+    variance_factor,
+)
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
            "rescue", "second_look", "SECOND_LOOK_SPREAD", "lone_arms", "one_bar_crosses",
-           "edge_crosses", "edge_cut_part", "extrapolation", "prediction_reach",
+           "edge_crosses", "edge_cut_part", "extrapolation", "prediction_cov",
+           "lone_bar_prediction_cov",
            "h_parameter_jacobian", "similar_four", "SIMILAR_TOL_MM", "ONE_BAR_ABSENT",
            "ONE_BAR_MIN_SCORE", "departure_model", "expected_departure", "outlier_threshold",
            "robust_spread",
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
-           "LONE_ARM_ALONG_MIN_PX", "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
+           "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
            "REINSTATE_DEGREES", "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX",
            "EDGE_CUT_MAX", "outlier_floor", "reinstate", "smooth_residuals", "global_model"]
 
@@ -81,12 +87,6 @@ RESCUE_MIN_GAIN = 0.1
 #: a rescued cross's precision (independent-pixel sigma) is at most this many times the
 #: measured crosses' median
 RESCUE_MAX_SIGMA_RATIO = 2.0
-#: the least standard deviation (px) of a lone bar's position along it (the prediction's):
-#: the measured crosses' departures from their neighbours' predictions set it above this
-#: (at 0.5 px it overstated the along error tenfold on well-predicted scans: normalised
-#: errors along the bar of 0.3-0.5 in several of the robustness sweep's conditions, 0.1 on
-#: aerial frames at 110-135 dpi)
-LONE_ARM_ALONG_MIN_PX = 0.1
 #: the largest standard deviation (film mm, reported: after the scan's variance factor) of a
 #: lone bar's position along it: the largest film deformation tested; where the neighbours
 #: predict a position more poorly than that, a lone bar's point is a guess along the bar
@@ -185,7 +185,7 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
     lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
               pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
-              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac))
+              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac)
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
@@ -705,20 +705,19 @@ def _rescue_like(f2, s_meas, gain_ref):
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
-               max_shift, fitted, blur, fine, ppm, along_max=np.inf):
+               max_shift, fitted, blur, fine, ppm, along_max=np.inf, vfac=1.0):
     """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
     (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
-    their neighbours predict; along the bar the position is that prediction, with the
-    per-axis RMS of the measured crosses' departures from their neighbours' (leave-one-out)
-    predictions as its standard deviation, at least :data:`LONE_ARM_ALONG_MIN_PX`, times
-    how much farther the prediction reaches there (:func:`prediction_reach`: a corner bar of
-    a small grid is extrapolated by the model fitted to the others). The
+    their neighbours predict; along the bar the position is that prediction, with its
+    variance along the bar (:func:`lone_bar_prediction_cov`, for the scan's variance factor
+    ``vfac``, which scales it later). The
     bar's contrast to noise, or its contrast, must be at least half the measured crosses'
-    median (the noise under a lone bar is not always the crosses'). Where that standard
-    deviation exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_MM` in px over the root of
-    the scan's variance factor, which scales it later) before the reach is counted, no bar is
-    measured: the scan's neighbours predict its crosses too poorly for any bar's point to be
-    more than a guess along it (the RMS is judged, not the floor). ``cov``:
+    median (the noise under a lone bar is not always the crosses'). Where the per-axis RMS
+    of the measured crosses' departures from their neighbours' (leave-one-out) predictions
+    exceeds ``along_max`` (px; :data:`LONE_ARM_ALONG_MAX_MM` in px over the root of the
+    scan's variance factor, which scales it later), no bar is measured: the scan's
+    neighbours predict its crosses too poorly for any bar's point to be more than a guess
+    along it. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured)."""
     st = np.array(status)
@@ -735,8 +734,9 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     # limit, and no bar of a well-predicted aerial frame was ever measured
     if rms > along_max:
         return
-    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
-                       rules, max_shift, blur, fine, ppm)
+    pcov = lone_bar_prediction_cov(film, cov[0], sigma, meas, q, Hm, loo, ppm, vfac)
+    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, rules,
+                       max_shift, blur, fine, ppm)
     for j, i in enumerate(q):
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
@@ -754,22 +754,19 @@ ONE_BAR_ABSENT = 0.25
 ONE_BAR_MIN_SCORE = 0.85
 
 
-def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
-                  rules, max_shift, blur, fine, ppm, **strict):
+def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, rules,
+                  max_shift, blur, fine, ppm, **strict):
     """:func:`softplot.marks.measure.measure_one_arm` of the crosses ``q`` from ``target``
     (pixel system) with the affine their neighbours predict (:func:`position_affine`, ``A``
-    where they do not surround the cross), along the bar the standard deviation ``rms`` (px,
-    the measured crosses' departures from their neighbours) at least
-    :data:`LONE_ARM_ALONG_MIN_PX` times the prediction's reach, and the measured crosses'
+    where they do not surround the cross), along the bar the variance ``pcov`` (Q, 2, 2) px^2
+    gives (pixel system, :func:`lone_bar_prediction_cov`), and the measured crosses'
     (``meas``) contrast and contrast to noise as the references; ``strict``: its ``absent``
     and ``min_score``. Returns the ``Fine``."""
-    along = max(rms, LONE_ARM_ALONG_MIN_PX) * prediction_reach(film[q], film[meas], Hm,
-                                                               sigma[meas])
     held, _ = position_affine(film, xy, st == "measured", ppm)
     Aq = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], A[q])
     cnr_ref = float(np.median(fine.cnr[fine.ok])) if fine.ok.any() else None
     return measure_one_arm(sc, shape, target, Aq, s0, sign, rules, max_shift=max_shift,
-                           along_sd=along, blur=blur, cnr_ref=cnr_ref,
+                           pred_cov=pcov, blur=blur, cnr_ref=cnr_ref,
                            gain_ref=peer_gain(fine, least=1), **strict)
 
 
@@ -786,10 +783,11 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     lone bar (:func:`_one_arm_fits`) from its neighbours' leave-one-out prediction; where
     one bar passes, correlates with its model at least :data:`ONE_BAR_MIN_SCORE` and the
     other's fit finds less than :data:`ONE_BAR_ABSENT` of its contrast, the lone bar
-    replaces the whole cross's fit (position across the bar, the prediction along it;
-    ``arms`` 1). A whole cross, both bars seen, is left as it is. ``xy`` (N, 2) pixel
-    system, ``film`` (N, 2) mm, ``cov``: the reported and the independent-pixel
-    covariances; modified in place. Returns the indices of the crosses measured again.
+    replaces the whole cross's fit (position across the bar, the prediction along it with
+    its variance, :func:`lone_bar_prediction_cov`; ``arms`` 1). A whole cross, both bars
+    seen, is left as it is. ``xy`` (N, 2) pixel system, ``film`` (N, 2) mm, ``cov``: the
+    reported and the independent-pixel covariances; modified in place. Returns the indices
+    of the crosses measured again.
     """
     st = np.array(status)
     meas = np.where(st == "measured")[0]
@@ -808,8 +806,17 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
         return np.zeros(0, int)
     pos = np.searchsorted(meas, q)
     target = xy[q] - loo[pos]  # the neighbours' prediction of each (pixel system)
-    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, rms, Hm, sigma, A, s0, sign,
-                       rules, max_shift, blur, fine, ppm, absent=ONE_BAR_ABSENT,
+    # the scan's variance factor, which scales the covariances later, as the validation
+    # will take it: without the crosses that may show one bar (measured whole, they lie off
+    # and made it 5.4 where it is 1)
+    rest = np.setdiff1d(meas, q)
+    if rest.size < LONE_ARM_MIN_MEASURED:
+        rest = meas
+    vfac = variance_factor(film[rest], r[rest], cov[0][rest], local_prediction, ppm, H=Hm)
+    pcov = lone_bar_prediction_cov(film, cov[0], sigma, rest, q, Hm,
+                                   loo[np.searchsorted(meas, rest)], ppm, vfac)
+    f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, rules,
+                       max_shift, blur, fine, ppm, absent=ONE_BAR_ABSENT,
                        min_score=ONE_BAR_MIN_SCORE)
     ok = np.where(f1.ok)[0]
     xy[q[ok]], cov[0][q[ok]], cov[1][q[ok]] = f1.xy[ok], f1.cov[ok], f1.cov_white[ok]
@@ -880,28 +887,59 @@ def h_parameter_jacobian(H, xy) -> np.ndarray:
     return J.reshape(-1, 8)
 
 
-def prediction_reach(q_film, film, H, sigma, draws=16) -> np.ndarray:
-    """How much farther the prediction of positions at ``q_film`` (Q, 2) mm reaches than the
-    leave-one-out predictions of the measured marks at ``film`` (M, 2) mm: the square root
-    of the ratio of their variances for unit noise on the marks (``draws`` simulated sets),
-    at least 1 (Q,). The prediction at ``q_film`` is the global model ``H`` (film mm ->
-    pixel system) fitted to the marks again (linearised) plus a local quadratic of their
-    residuals; the leave-one-out ones are :func:`local_prediction` of the residuals from the
-    model fitted to all. On a small grid the model fitted to six crosses and extrapolated to
-    the seventh's corner moves several times as much as inside it."""
-    z = np.random.default_rng(0).standard_normal((draws, len(film), 2))
-    if len(film) >= 5:
+def prediction_cov(q_film, film, H, sigma, cov) -> np.ndarray:
+    """Covariance (Q, 2, 2) px^2 (pixel system) of the neighbours' prediction of positions
+    at ``q_film`` (Q, 2) mm, for independent errors of covariance ``cov`` (M, 2, 2) px^2
+    (pixel system) on the marks at ``film`` (M, 2) mm, propagated exactly: the prediction
+    (:func:`lone_arms`' target) is linear in the marks' positions. It is the global model
+    ``H`` (film mm -> pixel system) fitted to the marks again (linearised, from 5 marks on)
+    plus a local quadratic (:func:`local_fit`, weights from ``sigma`` (M,) px) of their
+    residuals from it; a query point that is itself among the marks is left out of its own
+    fit, as there. A corner of a small grid, extrapolated, gets the larger covariance."""
+    q_film = np.asarray(q_film, float).reshape(-1, 2)
+    film = np.asarray(film, float).reshape(-1, 2)
+    M = len(film)
+    L = local_fit(q_film, film, np.eye(M), 16, 2, n_sigma=sigma)  # (Q, M) weights
+    G = L[:, :, None, None] * np.eye(2)  # d prediction_q / d position_j (Q, M, 2, 2)
+    if M >= 5:
         Jm = h_parameter_jacobian(H, film)
-        Jq = h_parameter_jacobian(H, q_film)
-        dh = np.linalg.lstsq(Jm, z.reshape(draws, -1).T, rcond=None)[0]  # (8, B)
-        rz = z - (Jm @ dh).T.reshape(draws, -1, 2)
-        pq = (Jq @ dh).T.reshape(draws, -1, 2) + local_fit(q_film, film, rz, 16, 2,
-                                                             n_sigma=sigma)
-    else:
-        pq = local_fit(q_film, film, z, 16, 2, n_sigma=sigma)
-    pm = local_prediction(film, z, sigma=sigma)
-    ref = float(np.median(np.mean(pm**2, axis=(0, 2))))
-    return np.sqrt(np.maximum(np.mean(pq**2, axis=(0, 2)) / ref, 1.0))
+        c = np.linalg.norm(Jm, axis=0)  # columns of very different scales
+        dh = (np.linalg.pinv(Jm / c) / c[:, None]).reshape(8, M, 2)  # d h / d position_j
+        # the model's change moves the query directly and the neighbours' residuals back
+        Aq = (h_parameter_jacobian(H, q_film).reshape(-1, 2, 8)
+              - np.einsum("qj,jrk->qrk", L, Jm.reshape(M, 2, 8)))
+        G = G + np.einsum("qrk,kjc->qjrc", Aq, dh)
+    return np.einsum("qjab,jbc,qjdc->qad", G, np.asarray(cov, float), G)
+
+
+def lone_bar_prediction_cov(film, cov, sigma, meas, q, H, loo, ppm, vfac) -> np.ndarray:
+    """Covariance (Q, 2, 2) px^2 (pixel system) of the neighbours' prediction of the lone
+    bars ``q`` (indices into ``film`` (N, 2) mm), in the units of ``cov`` (N, 2, 2) px^2,
+    the crosses' covariances before the scan's variance factor ``vfac`` scales them (it is
+    divided out here): along a lone bar its position is that prediction.
+
+    Two parts. What the measured crosses' (``meas``) own errors send through the prediction
+    (:func:`prediction_cov`, their covariances times ``vfac``): it grows where the
+    prediction extrapolates. And what the prediction misses of the film's deformation:
+    their departures ``loo`` (M, 2) px from their neighbours' leave-one-out predictions,
+    per axis in mean square, less what their own errors explain (their mean variance, and
+    its share that the neighbours' prediction carries, for unit noise), isotropic, at least
+    the deformation floor of :mod:`softplot.marks.precision` (a local fit's, or with fewer
+    than its ``MIN_MARKS`` crosses the global model's). The spread of the departures alone
+    (a 0.1 px floor) counted the crosses' own noise twice: normalised errors along the
+    robustness sweep's lone bars of 0.43 (0.13-0.76 per condition); with this, 0.92."""
+    meas = np.asarray(meas)
+    Cm = np.asarray(cov, float)[meas] * vfac
+    sg = np.asarray(sigma, float)[meas]
+    own = float(np.mean(0.5 * (Cm[:, 0, 0] + Cm[:, 1, 1])))
+    z = np.random.default_rng(0).standard_normal((16, len(meas), 2))
+    pz = local_prediction(film[meas], z, sigma=sg)
+    share = float(np.median(np.mean(pz**2, axis=(0, 2))))
+    miss = max(float(np.mean(np.square(loo))) - own * (1.0 + share), 0.0)
+    floor_um = DEFORMATION_FLOOR_UM if len(meas) >= MIN_MARKS else GLOBAL_DEFORMATION_FLOOR_UM
+    miss += (floor_um * 1e-3 * ppm) ** 2
+    pc = prediction_cov(film[q], film[meas], H, sg, Cm) + miss * np.eye(2)
+    return pc / vfac
 
 
 def edge_cut_part(xy, J, ppm, shape, width, height):
