@@ -320,3 +320,17 @@ def test_bar_share_evaluates_the_bars_only_where_it_regresses(turn):
     whole = shape.bars(u, v, np.float32(0.8), aperture=tuple(x[:, None, None] for x in ap))
     for a, b in zip(_bars_at(shape, u, v, m, np.float32(0.8), ap), whole, strict=True):
         assert a.dtype == b.dtype and np.array_equal(a[m], b[m]) and not a[~m].any()
+
+
+def test_fine_rotations_histogrammed_at_once_are_each_cells_own():
+    """grid._lattice_search histograms the fine rotations of all its cells in one call: each
+    rotation's phase histogram is the one a call for that cell alone gives, to the bit."""
+    rng = np.random.default_rng(5)
+    d = rng.uniform(-900, 900, (700, 2))
+    w = rng.uniform(0, 1, 700)
+    sub = np.linspace(-0.004, 0.004, 11)
+    fines = [t + sub for t in rng.uniform(-0.3, 0.3, 24)]
+    every = grid._histograms(d, w, 63.7, 61.2, np.concatenate(fines))
+    for i, f in enumerate(fines):
+        assert np.array_equal(every[11 * i : 11 * (i + 1)], grid._histograms(d, w, 63.7, 61.2, f))
+

@@ -160,9 +160,8 @@ def _lm(resid_jac, p, lo, hi, iterations=30):
         a = np.where(active)[0]
         if a.size == 0:
             break
-        Ja = J[a]
-        Jt = Ja.transpose(0, 2, 1)
-        M = Jt @ Ja
+        Jt = J[a].transpose(0, 2, 1)
+        M = Jt @ J[a]
         g = (Jt @ r[a][..., None])[..., 0]
         M[:, diag, diag] += lam[a, None] * (M[:, diag, diag] + 1e-12)
         step, bad = _solve(M, -g)

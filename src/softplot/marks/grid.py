@@ -268,10 +268,15 @@ def _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square,
     thetas = np.radians(rotate_deg) + np.arange(-n, n + 1) * step
     Hs = _histograms(d, w, lx, ly, thetas)
     out = []
-    for a, cell in _top_cells(Hs, k):
-        # five times finer around it, the highest cell within a bin of it
-        fine = thetas[a] + np.linspace(-step, step, 11)
-        Hf = _histograms(d, w, lx, ly, fine)
+    cells = _top_cells(Hs, k)
+    # five times finer around each, the highest cell within a bin of it: the fine rotations
+    # of every cell histogrammed at once (each rotation's histogram is its own)
+    sub = np.linspace(-step, step, 11)
+    fines = [thetas[a] + sub for a, _ in cells]
+    Hall = _histograms(d, w, lx, ly, np.concatenate(fines)) if cells else None
+    for i, (_, cell) in enumerate(cells):
+        fine = fines[i]
+        Hf = Hall[11 * i : 11 * (i + 1)]
         nb = PHASE_BINS
         near = np.zeros((nb, nb), bool)
         for du in (-1, 0, 1):
