@@ -23,6 +23,24 @@ def test_grid_departure_is_the_rms_off_a_projective_grid_per_spare_coordinate():
     assert np.sqrt(0.5) * 2.0 / np.sqrt(10.0) < dep < 2.0 / np.sqrt(10.0)
 
 
+def test_a_faint_grid_has_crosses_of_one_sign_and_alike_contrast():
+    """Contrasts of the marks' sign within the spread allowed are alike; one fit of the other
+    sign (texture at a node), the other sign expected, or a spread of 1.7 times the limit are
+    not."""
+    from softplot.marks.faint_grid import FAINT_GRID_GAIN_SPREAD, alike_contrast
+
+    rng = np.random.default_rng(5)
+    g = 0.1 * (1.0 + 0.5 * FAINT_GRID_GAIN_SPREAD * rng.standard_normal(9))
+    assert alike_contrast(g, +1)
+    assert not alike_contrast(g, -1)
+    assert alike_contrast(-g, -1)
+    flipped = g.copy()
+    flipped[4] = -0.05
+    assert not alike_contrast(flipped, +1)
+    wide = 0.1 * (1.0 + 1.5 * FAINT_GRID_GAIN_SPREAD * np.linspace(-1.5, 1.5, 9))
+    assert np.all(wide > 0) and not alike_contrast(wide, +1)
+
+
 def test_a_blurred_faint_grid_over_a_texture_is_measured_as_a_whole(monkeypatch):
     """Sweep render 364 (Pentax 645, 3 x 3 crosses of contrast 0.13 blurred by 2.4 px, lines
     0.76x and arms 1.48x the certificate's, over a texture): every cross correlates 0.2-0.45

@@ -23,8 +23,8 @@ from softplot.marks.measurement import Measurement
 from softplot.marks.prediction import Prediction
 from softplot.marks.template import MarkShape
 
-__all__ = ["faint_grid", "grid_departure", "FAINT_GRID_MIN", "FAINT_GRID_K",
-           "FAINT_GRID_SIGMA"]
+__all__ = ["faint_grid", "grid_departure", "alike_contrast", "FAINT_GRID_MIN", "FAINT_GRID_K",
+           "FAINT_GRID_SIGMA", "FAINT_GRID_GAIN_SPREAD"]
 
 #: crosses inside the scan that a faint grid needs: a projective model (8 parameters) is
 #: judged by their 2 n coordinates, 10 to spare with 9
@@ -36,6 +36,11 @@ FAINT_GRID_K = 2.5
 #: their median precision at most this many times ``rules.max_sigma`` (fits to the noise of
 #: a scan whose crosses are below detection: 1.8 px, a third of a pitch's blur: 12 px)
 FAINT_GRID_SIGMA = 2.0
+#: their fitted contrasts all of the marks' sign, their robust spread (1.4826 MAD) at most this
+#: share of their median: the crosses of one reseau are alike (a faint reseau over a texture:
+#: 0.26), fits to a plain photograph's texture or noise at a lattice's nodes are of either
+#: sign (the spread of the 17 such lattices of plain sweep renders: 0.5-170)
+FAINT_GRID_GAIN_SPREAD = 0.4
 
 
 def grid_departure(film: np.ndarray, xy: np.ndarray) -> float:
@@ -46,14 +51,27 @@ def grid_departure(film: np.ndarray, xy: np.ndarray) -> float:
     return float(np.sqrt(np.sum(r * r) / max(2 * len(xy) - 8, 1)))
 
 
+def alike_contrast(gain: np.ndarray, sign: int) -> bool:
+    """Are the fitted contrasts ``gain`` (n,) grey units all of the marks' ``sign`` and
+    alike (robust spread at most :data:`FAINT_GRID_GAIN_SPREAD` of their median)?"""
+    g = sign * np.asarray(gain, float)
+    if not (np.isfinite(g).all() and (g > 0).all()):
+        return False
+    med = float(np.median(g))
+    return bool(1.4826 * np.median(np.abs(g - med)) <= FAINT_GRID_GAIN_SPREAD * med)
+
+
 def _on_faint_grid(fine: Fine, film: np.ndarray, pred: np.ndarray, max_shift: float,
-                   rules: AcceptRules) -> float | None:
+                   sign: int, rules: AcceptRules) -> float | None:
     """The fits ``fine`` (pixel system) of the crosses at ``film`` (n, 2) mm predicted at
-    ``pred`` (n, 2) px as a grid: the factor their precision is raised by (>= 1), or None
-    where they are no grid (a fit not finite or farther than ``max_shift`` from its
-    prediction, too imprecise, too little contrast, or off a projective grid)."""
+    ``pred`` (n, 2) px, marks of ``sign``, as a grid: the factor their precision is raised
+    by (>= 1), or None where they are no grid (a fit not finite or farther than ``max_shift``
+    from its prediction, too imprecise, too little contrast, contrasts unlike each other,
+    or off a projective grid)."""
     sig = fine.sigma
     if not (np.isfinite(fine.xy).all() and np.isfinite(sig).all()):
+        return None
+    if fine.gain is None or not alike_contrast(fine.gain, sign):
         return None
     if np.hypot(*(fine.xy - pred).T).max() > max_shift:
         return None
@@ -81,7 +99,7 @@ def faint_grid(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
         return None
     fine = measure(scan, shape, pr.start[idx], pr.A[idx], pr.s0, pr.init_err, pr.sign, rules,
                    fit_shape=False, anchor=pr.xy[idx], max_shift=pr.max_shift)
-    k = _on_faint_grid(fine, pr.film[idx], pr.xy[idx], pr.max_shift, rules)
+    k = _on_faint_grid(fine, pr.film[idx], pr.xy[idx], pr.max_shift, pr.sign, rules)
     if k is None:
         return None
     cov = fine.cov * k * k
