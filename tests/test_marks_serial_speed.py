@@ -261,10 +261,9 @@ def test_median_profile_is_numpys_columnwise_median_to_the_bit():
 def _bar_share_whole(scan, shape, c, A, s, sign):
     """measure.bar_share as it was: the bars' profiles evaluated over the whole patches."""
     from softplot.marks.lsm import patch_frame, support_mask
-    from softplot.marks.measure import patches
+    from softplot.marks.measure import _bar_regression, patches
     from softplot.marks.template import aperture
 
-    n = len(c)
     grow = float(1.0 / max(np.linalg.svd(A, compute_uv=False).min(), 1e-3))
     reach = min(shape.extent + 2.5 * s + 1.25, 0.5 * shape.width + 6.0 * s + 6.0)
     half = int(np.ceil(reach * grow + 2))
@@ -272,25 +271,9 @@ def _bar_share_whole(scan, shape, c, A, s, sign):
     u, v = patch_frame(origin, c, A, stack.shape)
     ap = tuple(x[:, None, None] for x in aperture(A.astype(np.float32)))
     bu, bv, core = shape.bars(u, v, np.float32(max(s, 0.3)), aperture=ap)
-    yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
     m = (support_mask(shape, u, v, 2.5 * s + 1.25) & np.isfinite(stack)
          & (np.maximum(np.abs(u), np.abs(v)) <= reach))
-    X = np.stack(np.broadcast_arrays(m.astype(np.float32), (xx - half) * m, (yy - half) * m,
-                                     (bu - core) * m, (bv - core) * m, core * m), -1)
-    X = X.reshape(n, -1, 6)
-    g = np.where(m, stack, 0.0).reshape(n, -1)
-    Xt = X.transpose(0, 2, 1)
-    N = np.matmul(Xt, X).astype(float)
-    rhs = np.matmul(Xt, g[..., None])[..., 0].astype(float)
-    scale = np.sqrt(np.maximum(np.einsum("nii->ni", N), 1e-12))
-    Ns = N / scale[:, :, None] / scale[:, None, :]
-    ok = np.abs(np.linalg.det(Ns)) > 1e-8
-    b = np.full((n, 6), np.nan)
-    if ok.any():
-        b[ok] = np.linalg.solve(Ns[ok], (rhs[ok] / scale[ok])[..., None])[..., 0] / scale[ok]
-    con = np.maximum(b[:, 3:5] * sign, 0.0)
-    with np.errstate(all="ignore"):
-        return np.where(con.max(1) > 0, con.min(1) / con.max(1), np.nan)
+    return _bar_regression(stack, m, bu, bv, core, half, sign)
 
 
 @pytest.mark.parametrize("turn", [0.0, 0.3])

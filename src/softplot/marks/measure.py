@@ -1318,6 +1318,15 @@ def bar_share(scan, shape: MarkShape, c: np.ndarray, A: np.ndarray, s: float,
          & (np.maximum(np.abs(u), np.abs(v)) <= reach))
     bu, bv, core = _bars_at(shape, u, v, m, np.float32(max(s, 0.3)),
                             aperture(A.astype(np.float32)))
+    return _bar_regression(stack, m, bu, bv, core, half, sign)
+
+
+def _bar_regression(stack, m, bu, bv, core, half: int, sign: int) -> np.ndarray:
+    """:func:`bar_share`'s regression: each patch of ``stack`` (N, h, w; pixel system, the
+    cross at pixel ``(half, half)``) over its pixels ``m`` on a plane, on what each bar adds
+    (``bu - core``, ``bv - core``) and on the central square ``core``; the weaker bar's
+    contrast over the stronger's, ``(N,)`` (NaN where singular or neither has contrast)."""
+    n = len(stack)
     yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(np.float32)
     X = np.stack(np.broadcast_arrays(m.astype(np.float32), (xx - half) * m, (yy - half) * m,
                                      (bu - core) * m, (bv - core) * m, core * m), -1)
