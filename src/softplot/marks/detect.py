@@ -312,8 +312,12 @@ def _detect_reseau(sc, cam, name, dpi, polarity, rotate, blur_px, rules, t0,
         del moved
         geom, m, v, pr, need = _measure(sc, pr, res, shape, ppm, rules, scene, timings, t0,
                                         min_measured)
-    min_measured, few_mm = need
+    min_measured, few_mm, faint = need
     warnings = _judge(cam, name, pr.sign, ppm, m, v, ambiguous, min_measured, few_mm)
+    if faint:
+        warnings.append(f"the {sum(st == 'measured' for st in m.status)} crosses measured are "
+                        "too faint to hold one by one: accepted together as a projective grid, "
+                        "their covariances raised to its departure")
     timings["total"] = time.perf_counter() - t0
     return _reseau_detection(sc, cam, name, dpi, dpi_source, pr.sign, m, v, geom.to_json(ppm),
                              warnings, timings, ambiguous)
@@ -323,7 +327,8 @@ def _measure(sc, pr, res, shape0, ppm, rules, scene, timings, t0, min_measured):
     """The stages after the prediction ``pr`` (of the grid ``res``): the crosses' geometry,
     their measurement and validation: ``(geom, m, v, pr, (min_measured, few_mm))``, ``pr``
     with the geometry's centres (pixel system), the fewest crosses measured and the grid's
-    tolerance (mm) that make a reseau."""
+    tolerance (mm) that make a reseau, and whether the crosses were accepted together as a
+    faint grid."""
     geom, pr = centred_geometry(sc, pr, shape0, min(res.pitch_x, res.pitch_y) * ppm)
     timings["profiles"] = time.perf_counter() - t0
     geom = choose_width(sc, pr, geom, shape0.width, rules, guess_arm=shape0.length)
@@ -341,12 +346,13 @@ def _measure(sc, pr, res, shape0, ppm, rules, scene, timings, t0, min_measured):
         few_mm = SIMILAR_TOL_MM if min_measured < MIN_DENSE else few_mm
     timings["lsm"] = time.perf_counter() - t0
     v = validate(sc, pr, m, rules)
+    faint = False
     if sum(st == "measured" for st in m.status) < min(min_measured, res.count):
         # too few crosses hold one by one: all of them, fitted alike, as a faint grid
         fg = faint_grid(sc, shape, pr, inside, rules, m)
         if fg is not None:
-            m, v = fg, validate(sc, pr, fg, rules)
-    return geom, m, v, pr, (min_measured, few_mm)
+            m, v, faint = fg, validate(sc, pr, fg, rules), True
+    return geom, m, v, pr, (min_measured, few_mm, faint)
 
 
 def _check_size(sc, cam, dpi, name) -> None:
