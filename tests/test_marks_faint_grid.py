@@ -65,6 +65,7 @@ def test_a_blurred_faint_grid_over_a_texture_is_measured_as_a_whole(monkeypatch)
     assert 0.5 < np.sqrt(np.mean(sc.z2)) < 1.5  # the errors are of the sigmas' size
     # the user is told the crosses hold only together
     assert any("too faint to hold one by one" in w for w in det.warnings), det.warnings
+    assert "a faint grid" in det.summary()
 
 
 def test_noise_fits_of_crosses_below_detection_are_no_faint_grid():

@@ -143,7 +143,9 @@ class Detection:
                 f"{self.polarity}, {self.dpi:.1f} dpi ({self.dpi_source})"
                 + ("; scene estimated jointly with the crosses" if self.scene == "joint" else "")
                 + ("; names rest on --rotate" if any("rest on --rotate" in w
-                                                    for w in self.warnings) else ""))
+                                                    for w in self.warnings) else "")
+                + ("; a faint grid: the crosses hold only together"
+                   if any("too faint to hold one by one" in w for w in self.warnings) else ""))
 
     def to_json(self) -> dict:
         """The detection JSON document (docs/detection.md; a dict ready for ``json.dump``)."""
