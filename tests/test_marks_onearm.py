@@ -36,12 +36,15 @@ def test_one_armed_crosses_are_measured_across_their_bar(seed):
         if m["status"] == "measured":
             assert m["arms"] == t["arms"], (m["name"], m["arms"], t["arms"])
         if t["arms"] != 1:
+            assert m["bar"] is None, (m["name"], m["bar"])
             continue
         assert m["status"] == "measured", (m["name"], m["reason"])
         found += 1
         along = mp.jacobian(np.array([[t["film_x"], t["film_y"]]]))[0][
             :, 0 if t["arm_axis"] == "x" else 1]
         tv = along / np.hypot(*along)
+        # the JSON names the bar measured: its unit vector in the scan, the truth's bar
+        assert abs(np.array(m["bar"]) @ tv) > 0.999, (m["name"], m["bar"], tv)
         nv = np.array([-tv[1], tv[0]])
         C = np.array(m["cov"])
         e = np.array([m["x"] - t["x"], m["y"] - t["y"]])

@@ -402,6 +402,37 @@ def test_one_armed_crosses_are_scored_along_their_bar_too():
     assert any("along the bar" in m for m in misses(row))
 
 
+def test_a_lone_bar_on_a_cross_is_scored_along_the_bar_the_detection_names():
+    """A lone bar measured on a two-armed cross whose prediction along the bar is more
+    certain than the fit across it (the covariance's larger axis across the bar): scored
+    along the bar the detection says it measured (``Detection.bar``), not along the larger
+    axis. Counterfactual: without ``bar`` the error along the bar is taken across it."""
+    from types import SimpleNamespace
+
+    from softplot.synthetic import ScanSpec
+    from softplot.synthetic.sweep import score
+
+    _, truth = render_scan("rollei-6006", ScanSpec(dpi=400), 3)
+    ms = truth["marks"]
+    xy = np.array([[m["x"], m["y"]] for m in ms])
+    two = next(i for i, m in enumerate(ms) if m["arms"] == 2 and m["state"] == "visible"
+               and not m["damaged"])
+    cov = np.tile(np.diag([1e-4, 1e-4]), (len(ms), 1, 1))
+    cov[two] = np.diag([0.04, 0.09])  # a bar along x (pixel system): 0.2 px along, 0.3 across
+    arms = np.full(len(ms), 2)
+    arms[two] = 1
+    bar = np.full((len(ms), 2), np.nan)
+    bar[two] = (1.0, 0.0)
+    det = SimpleNamespace(
+        name=[m["name"] for m in ms], kind=["reseau"] * len(ms), status=["measured"] * len(ms),
+        reason=[""] * len(ms), xy=xy.copy(), cov=cov, arms=arms, bar=bar)
+    det.xy[two] += (0.6, 0.0)  # 3 sigma along the bar
+    bounds = {m["name"]: 0.01 for m in ms}
+    assert score(det, truth, bounds).z2_along == [pytest.approx(9.0)]
+    det.bar = None  # a detection that does not say: the larger axis, across the bar
+    assert score(det, truth, bounds).z2_along == [pytest.approx(0.0, abs=1e-20)]
+
+
 # -- what is detectable: the crosses' signal-to-noise ratio --------------------------------
 
 

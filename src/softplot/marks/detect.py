@@ -486,5 +486,6 @@ def _reseau_detection(sc, cam, name, dpi, dpi_source, sign, m: Measurement, v: V
         scene="joint" if m.scene_tv else "opening",
         mark_geometry=mark_geometry,
         arms=v.arms,
+        bar=v.bar,
         variance_factor=v.variance_factor,
     )

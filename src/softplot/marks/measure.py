@@ -146,6 +146,9 @@ class Fine:
     #: what the scan's JPEG quantisation adds to ``cov`` (px^2, not in it:
     #: :attr:`softplot.marks.lsm.LSMResult.cov_jpeg`)
     cov_jpeg: np.ndarray | None = None
+    #: crosses measured as a lone bar: the bar's unit vector (N, 2), pixel system (x, y);
+    #: NaN elsewhere (:func:`measure_one_arm`)
+    bar: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -1443,7 +1446,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     prediction's covariance; ``t`` the bar's unit vector; None: 1 px^2). The fit across the bar is a
     second one with the model of the bar alone over all its pixels (:func:`_bar_refit`;
     the first one's where that fails). ``Fine.arms`` is 1 where a bar
-    was measured, 0 elsewhere.
+    was measured, 0 elsewhere; ``Fine.bar`` the measured bar's unit vector ``t`` (pixel
+    system), NaN elsewhere.
     """
     rules = rules or AcceptRules()
     c0 = np.asarray(c0, float).reshape(-1, 2)
@@ -1455,6 +1459,7 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
                np.full(n, np.nan), np.zeros(n, bool), ["no bar found"] * n, None,
                A0.copy(), None, 0, np.full(n, np.nan), np.zeros(n, int),
                np.full((n, 2, 2), np.nan))
+    out.bar = np.full((n, 2), np.nan)
     if n == 0 or shape.kind != "cross":
         return out
     s_fit = float(blur) if blur is not None else s0
@@ -1519,7 +1524,7 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
         out.cov[i] = var_n * np.outer(nv, nv) + var_t * np.outer(tv, tv)
         out.cov_white[i] = var_w * np.outer(nv, nv) + var_t * np.outer(tv, tv)
         out.score[i], out.cnr[i], out.s[i] = res.score[i], res.cnr[i], res.s[i]
-        out.ok[i], out.reason[i], out.arms[i] = True, "", 1
+        out.ok[i], out.reason[i], out.arms[i], out.bar[i] = True, "", 1, tv
     for i in np.where(passed.all(1))[0]:
         out.reason[i] = "both bars seen but the cross refused"
     return out

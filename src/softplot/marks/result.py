@@ -87,6 +87,10 @@ class Detection:
         Reseau crosses: the bars a measured cross was measured with, 2 (a whole cross) or 1
         (only one bar visible: its position across the bar is measured, along it the
         position is the prediction and its variance in ``cov`` large); 0 where not measured.
+    bar : (N, 2) float or None
+        Crosses measured as a lone bar (``arms`` 1): the bar's unit vector (pixel system x,
+        y), the direction along which ``cov`` holds the prediction's variance; NaN
+        elsewhere.
     variance_factor : float
         The factor (at least 1) by which the crosses' covariances were enlarged because their
         departures from their neighbours showed larger errors than the least-squares
@@ -124,6 +128,7 @@ class Detection:
     arms: np.ndarray | None = None
     variance_factor: float = 1.0
     ids_ambiguous: bool = False
+    bar: np.ndarray | None = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -171,6 +176,9 @@ class Detection:
                               [_num(self.cov[i, 1, 0], 8), _num(self.cov[i, 1, 1], 8)]]),
                 "arms": (int(self.arms[i]) if self.arms is not None and ok
                          and self.status[i] == "measured" and self.arms[i] > 0 else None),
+                "bar": (None if self.bar is None or not ok or self.status[i] != "measured"
+                        or not np.isfinite(self.bar[i]).all()
+                        else [_num(self.bar[i, 0], 6), _num(self.bar[i, 1], 6)]),
                 "cnr": _num(self.cnr[i], 2),
                 "residual_x": _num(self.residual[i, 0], 4),
                 "residual_y": _num(self.residual[i, 1], 4),

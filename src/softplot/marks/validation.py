@@ -117,6 +117,9 @@ class Validation:
     arms : (N,) int or None
         Arms each cross was measured by: 2 (the cross), 1 (a lone bar), 0 (not measured);
         None for fiducials.
+    bar : (N, 2) ndarray or None
+        The lone bars' unit vectors along the bar (pixel system x, y; where ``arms`` is 1),
+        NaN elsewhere; None for fiducials.
     departure : (2, 2) ndarray or None
         The outlier test's :func:`departure_model` (None with fewer than 8 measured).
     kind : str
@@ -134,6 +137,7 @@ class Validation:
     departure: np.ndarray | None
     kind: str = "projective"
     variance_factor: float = 1.0
+    bar: np.ndarray | None = None
 
 
 def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
@@ -176,16 +180,17 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     if len(reinstate(film, xy, status, reason, floor_px, Hm)):
         Hm, residual, rms = global_model(film, xy, status, Hm)
     arms = np.where(np.array(status) == "measured", 2, 0)
+    bar = np.full((N, 2), np.nan)
     one_bar_crosses(scan, shape, film, xy, (cov, cov_w), status, arms, Hm, sigma, A_fit,
                     pr.s0, pr.sign, rules, pr.max_shift, held_blur(fine), fine, ppm,
-                    along_max=LONE_ARM_ALONG_MAX_MM * ppm)
+                    along_max=LONE_ARM_ALONG_MAX_MM * ppm, bar=bar)
     # the errors the crosses' own fits cannot see, from their departures from each other
     # (of the two-armed crosses only: the lone bars below do not change it)
     two = arms == 2
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
     lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
               pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
-              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac)
+              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac, bar=bar)
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
@@ -200,7 +205,7 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     got = edge_crosses(scan, pr, m, arms, Hm, vfac, floor_px, dep, rules)
     residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
-                      variance_factor=vrep)
+                      variance_factor=vrep, bar=bar)
 
 
 def outlier_floor(film, status, ppm) -> np.ndarray:
@@ -705,7 +710,7 @@ def _rescue_like(f2, s_meas, gain_ref):
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
-               max_shift, fitted, blur, fine, ppm, along_max=np.inf, vfac=1.0):
+               max_shift, fitted, blur, fine, ppm, along_max=np.inf, vfac=1.0, bar=None):
     """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
     (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
     their neighbours predict; along the bar the position is that prediction, with its
@@ -719,7 +724,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     neighbours predict its crosses too poorly for any bar's point to be more than a guess
     along it. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
-    (``arms`` 1 where a bar was measured)."""
+    (``arms`` 1 where a bar was measured; ``bar`` (N, 2), if given, the bar's unit vector
+    there, pixel system)."""
     st = np.array(status)
     q = np.where(((st == "missing") | (st == "rejected")) & np.asarray(fitted, bool))[0]
     meas = np.where(st == "measured")[0]
@@ -741,6 +747,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
         if f1.ok[j]:
             xy[i], cov[0][i], cov[1][i] = f1.xy[j], f1.cov[j], f1.cov_white[j]
             status[i], reason[i], arms[i] = "measured", "", 1
+            if bar is not None:
+                bar[i] = f1.bar[j]
 
 
 #: a cross measured whole is measured again as a lone bar only where its other bar's fit
@@ -771,7 +779,7 @@ def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, r
 
 
 def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, sign, rules,
-                    max_shift, blur, fine, ppm, along_max=np.inf) -> np.ndarray:
+                    max_shift, blur, fine, ppm, along_max=np.inf, bar=None) -> np.ndarray:
     """Crosses measured whole that show one bar only, measured again as a lone bar.
 
     A one-armed cross whose short or blurred arms let the missing bar's halves borrow the
@@ -786,8 +794,9 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     replaces the whole cross's fit (position across the bar, the prediction along it with
     its variance, :func:`lone_bar_prediction_cov`; ``arms`` 1). A whole cross, both bars
     seen, is left as it is. ``xy`` (N, 2) pixel system, ``film`` (N, 2) mm, ``cov``: the
-    reported and the independent-pixel covariances; modified in place. Returns the indices
-    of the crosses measured again.
+    reported and the independent-pixel covariances; modified in place (and ``bar`` (N, 2),
+    if given: the lone bar's unit vector, pixel system). Returns the indices of the crosses
+    measured again.
     """
     st = np.array(status)
     meas = np.where(st == "measured")[0]
@@ -821,6 +830,8 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     ok = np.where(f1.ok)[0]
     xy[q[ok]], cov[0][q[ok]], cov[1][q[ok]] = f1.xy[ok], f1.cov[ok], f1.cov_white[ok]
     arms[q[ok]] = 1
+    if bar is not None:
+        bar[q[ok]] = f1.bar[ok]
     return q[ok]
 
 

@@ -826,7 +826,7 @@ def score(det, truth: dict, bounds: dict, ambiguous: str = "", snr: dict | None 
                 sc.z2.append(ea * ea / var)
         else:
             if lone:  # a lone bar measured on a cross: along it, the neighbours' guess
-                _along_z(sc, e, C, None)
+                _along_z(sc, e, C, _lone_bar(det, i))
             _note_snr(sc, snr, t["name"], float(e @ e) / 2, b, gross)
             if np.isfinite(b):
                 sc.err2.append(float(e @ e) / 2)
@@ -855,9 +855,20 @@ def _note_snr(sc: Score, snr: dict | None, name: str, err2: float, bound: float,
         sc.claimed_below.append(f"{name} (SNR {ratio:.1f} < {thr:.1f})")
 
 
+def _lone_bar(det, i: int) -> np.ndarray | None:
+    """The unit vector (pixel system) of the bar the detection measured mark ``i`` by
+    (``Detection.bar``); None where it does not say."""
+    bar = getattr(det, "bar", None)
+    if bar is None or not np.isfinite(bar[i]).all():
+        return None
+    b = np.asarray(bar[i], float)
+    return b / np.hypot(*b)
+
+
 def _along_z(sc: Score, e: np.ndarray, C: np.ndarray, along: np.ndarray | None) -> None:
-    """The squared normalised error along a bar (its unit vector ``along``, pixel system; None:
-    the axis along which the covariance ``C`` is largest, a lone bar's) into ``sc.z2_along``:
+    """The squared normalised error along a bar (its unit vector ``along``, pixel system; None,
+    a detection that does not say which bar: the axis along which the covariance ``C`` is
+    largest) into ``sc.z2_along``:
     a one-armed cross's position along its bar must be no more certain than it is."""
     if not np.isfinite(C).all():
         return
