@@ -433,6 +433,28 @@ def test_a_lone_bar_on_a_cross_is_scored_along_the_bar_the_detection_names():
     assert score(det, truth, bounds).z2_along == [pytest.approx(0.0, abs=1e-20)]
 
 
+def test_one_armed_crosses_are_compared_with_their_renders_whole_crosses():
+    """``rms1_over_render``: one-armed crosses as far off across their bar, for their bound,
+    as their render's whole crosses are score 1 however hard the render (a render at 3x its
+    bounds and one at 1x); one-armed crosses twice as far off as that score 2; a render
+    without measured whole crosses is left out. The same from the logs' pooled sums."""
+    from softplot.synthetic.sweep import Score, aggregate, one_arm_over_render
+
+    def render(q, q1, n1=3, n2=5):  # whole crosses at q x their bound, one-armed at q1 x
+        b2, b1 = np.linspace(0.02, 0.1, n2), np.linspace(0.05, 0.2, n1)
+        return Score(result=True, err2=list((q * b2) ** 2), crb2=list(b2**2),
+                     err2_1=list((q1 * b1) ** 2), crb2_1=list(b1**2))
+
+    alike = [render(3.0, 3.0), render(1.0, 1.0)]
+    assert one_arm_over_render(alike) == pytest.approx(1.0)
+    assert aggregate([(make_case(0), s) for s in alike])["all"]["rms1_over_crb1"] > 2.0
+    worse = [render(3.0, 6.0), render(1.0, 2.0), Score(err2_1=[1.0], crb2_1=[1e-4])]
+    assert one_arm_over_render(worse) == pytest.approx(2.0)
+    logged = [Score.from_dict(s.to_dict()) for s in worse]
+    assert one_arm_over_render(logged) == pytest.approx(2.0)
+    assert np.isnan(one_arm_over_render([render(2.0, 2.0, n1=0)]))
+
+
 # -- what is detectable: the crosses' signal-to-noise ratio --------------------------------
 
 

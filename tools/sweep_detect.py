@@ -119,11 +119,20 @@ def main(argv=None) -> int:
     print(md)
     print(f"\n{len(seeds)} renders in {time.perf_counter() - t0:.0f} s; "
           f"{len(failures)} with a failure")
+    print(_one_arm_line(agg))
     short = {k: misses(v) for k, v in agg.items() if misses(v)}
     for k, v in short.items():
         print(f"  {k}: misses {'; '.join(v)}")
     _write(a, agg, failures, len(seeds), seeds)
     return 0
+
+
+def _one_arm_line(agg: dict) -> str:
+    """The one-armed crosses across their bar against their renders' two-armed crosses
+    (``softplot.synthetic.sweep.one_arm_over_render``), pooled."""
+    r = agg["all"]
+    return (f"one-armed across: {r['rms1_over_crb1']:.3f}x their bound, "
+            f"{r['rms1_over_render']:.3f}x their renders' two-armed RMS/CRB")
 
 
 def _below(sc) -> str:
@@ -151,6 +160,7 @@ def _merge(a) -> int:
     md = table(agg)
     head = f"{len(seeds)} renders (seeds {seeds[0]}-{seeds[-1]})"
     print(head + "\n\n" + md)
+    print(_one_arm_line(agg))
     for k, v in agg.items():
         if misses(v):
             print(f"  {k}: misses {'; '.join(misses(v))}")

@@ -1079,11 +1079,30 @@ def aggregate(results: list[tuple[Case, Score]]) -> dict[str, dict]:
             "ambiguous": sum(bool(s.ambiguous_truth) for s in scs),
             "ambiguous_warned": sum(bool(s.ambiguous_truth) and s.ids_ambiguous for s in scs),
             "one_arm": len(e1), "rms1_over_crb1": rms1 / crb1 if e1 else float("nan"),
+            "rms1_over_render": one_arm_over_render(scs),
             "z_rms": math.sqrt(np.mean(z2)) if z2 else float("nan"),
             "z_along_rms": math.sqrt(np.mean(za)) if za else float("nan"),
             **_detectability(scs),
         }
     return out
+
+
+def one_arm_over_render(scs: list[Score]) -> float:
+    """The one-armed crosses' RMS error across their bar over what their renders' two-armed
+    crosses reach: ``sqrt(sum e1^2 / sum b1^2 q)``, ``e1`` and ``b1`` each one-armed cross's
+    error across its bar and bound, ``q`` its render's two-armed ``sum err2 / sum crb2``
+    (renders without measured two-armed crosses left out). 1: a one-armed cross is measured
+    across its bar as well, for its bound, as the whole crosses of its scan; the rest of
+    ``rms1_over_crb1`` is the scans' (blur, scene, JPEG), not the lone bars'. NaN without
+    one-armed crosses on such renders."""
+    num = den = 0.0
+    for s in scs:
+        c2 = float(np.sum(s.crb2))
+        if not s.err2_1 or c2 <= 0:
+            continue
+        num += float(np.sum(s.err2_1))
+        den += float(np.sum(s.crb2_1)) * float(np.sum(s.err2)) / c2
+    return math.sqrt(num / den) if den > 0 else float("nan")
 
 
 def _detectability(scs: list[Score]) -> dict:
