@@ -183,14 +183,15 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     bar = np.full((N, 2), np.nan)
     one_bar_crosses(scan, shape, film, xy, (cov, cov_w), status, arms, Hm, sigma, A_fit,
                     pr.s0, pr.sign, rules, pr.max_shift, held_blur(fine), fine, ppm,
-                    along_max=LONE_ARM_ALONG_MAX_MM * ppm, bar=bar)
+                    along_max=LONE_ARM_ALONG_MAX_MM * ppm, bar=bar, fit=(m.score, m.cnr))
     # the errors the crosses' own fits cannot see, from their departures from each other
     # (of the two-armed crosses only: the lone bars below do not change it)
     two = arms == 2
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
     lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
               pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
-              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac, bar=bar)
+              along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac, bar=bar,
+              fit=(m.score, m.cnr))
     if (arms == 1).any():
         residual[arms == 1] = xy[arms == 1] - grid.apply_h(Hm, film[arms == 1])
     m.cov = cov * vfac
@@ -710,7 +711,8 @@ def _rescue_like(f2, s_meas, gain_ref):
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
-               max_shift, fitted, blur, fine, ppm, along_max=np.inf, vfac=1.0, bar=None):
+               max_shift, fitted, blur, fine, ppm, along_max=np.inf, vfac=1.0, bar=None,
+               fit=None):
     """Crosses fitted but not measured (missing or rejected), measured again as a lone bar
     (:func:`softplot.marks.measure.measure_one_arm`): from the position and with the affine
     their neighbours predict; along the bar the position is that prediction, with its
@@ -725,7 +727,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
     along it. ``cov``:
     the reported and the independent-pixel covariances. Modifies the arrays in place
     (``arms`` 1 where a bar was measured; ``bar`` (N, 2), if given, the bar's unit vector
-    there, pixel system)."""
+    there, pixel system; ``fit``, if given, the crosses' score and contrast-to-noise arrays
+    (N,): the bar's fit's there, not the refused cross's)."""
     st = np.array(status)
     q = np.where(((st == "missing") | (st == "rejected")) & np.asarray(fitted, bool))[0]
     meas = np.where(st == "measured")[0]
@@ -749,6 +752,8 @@ def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, 
             status[i], reason[i], arms[i] = "measured", "", 1
             if bar is not None:
                 bar[i] = f1.bar[j]
+            if fit is not None:
+                fit[0][i], fit[1][i] = f1.score[j], f1.cnr[j]
 
 
 #: a cross measured whole is measured again as a lone bar only where its other bar's fit
@@ -779,7 +784,8 @@ def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, r
 
 
 def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, sign, rules,
-                    max_shift, blur, fine, ppm, along_max=np.inf, bar=None) -> np.ndarray:
+                    max_shift, blur, fine, ppm, along_max=np.inf, bar=None,
+                    fit=None) -> np.ndarray:
     """Crosses measured whole that show one bar only, measured again as a lone bar.
 
     A one-armed cross whose short or blurred arms let the missing bar's halves borrow the
@@ -795,7 +801,8 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     its variance, :func:`lone_bar_prediction_cov`; ``arms`` 1). A whole cross, both bars
     seen, is left as it is. ``xy`` (N, 2) pixel system, ``film`` (N, 2) mm, ``cov``: the
     reported and the independent-pixel covariances; modified in place (and ``bar`` (N, 2),
-    if given: the lone bar's unit vector, pixel system). Returns the indices of the crosses
+    if given: the lone bar's unit vector, pixel system; ``fit``, if given, the score and
+    contrast-to-noise arrays (N,): the bar's fit's). Returns the indices of the crosses
     measured again.
     """
     st = np.array(status)
@@ -832,6 +839,8 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     arms[q[ok]] = 1
     if bar is not None:
         bar[q[ok]] = f1.bar[ok]
+    if fit is not None:
+        fit[0][q[ok]], fit[1][q[ok]] = f1.score[ok], f1.cnr[ok]
     return q[ok]
 
 
