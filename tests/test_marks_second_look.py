@@ -111,3 +111,35 @@ def test_corner_refits_keep_the_free_affine_where_it_fits_better(cache, monkeypa
     sc, e = _cross_error(452, cache, "R10C10")
     assert e < e_first and sc.gross == [], (e, e_first, sc.gross)
     assert sc.measured >= first.measured, (sc.missed, first.missed)
+
+
+def _one_call(film, xy, ok, ppm, A, ids, H):
+    """The refits before the outline crosses held at the model's affine were a call of their
+    own: fitted in one call with the surrounded crosses (then the free affine's)."""
+    groups = validation._held_groups(film, xy, ok, ppm, A, ids, H=H)
+    return groups + [g for g in validation._held_groups(film, xy, ok, ppm, A, ids) if g[2]]
+
+
+def test_outline_refits_do_not_change_the_surrounded_crosses_scene_model(monkeypatch):
+    # the second renderer's aerial scan 189 (111 dpi, dpi estimated, lines 3.7 x the
+    # certificate's width over a smooth scene). Its surrounded crosses' refits take the plane
+    # as the scene of their flat patches; the outline crosses' patches by the format's edge,
+    # fitted in the same call, are not all flat, so the whole call took the opening's
+    # estimate and refits that lay 0.2-0.5 px off their truth failed (19 more crosses over
+    # 1 px off, RMS 0.98 -> 1.06 px)
+    from softplot.synthetic.plain import run_plain
+
+    with monkeypatch.context() as mp:  # the counterfactual: one call for both
+        mp.setattr(validation, "_look_groups", _one_call)
+        _, first = run_plain(189)
+    _, row = run_plain(189)
+    assert row["result"] and not row["wrong"] and not row["claimed"]
+    assert row["measured"] >= first["measured"], (row["missed"], first["missed"])
+    assert len(row["gross"]) <= len(first["gross"]) - 10, (len(row["gross"]),
+                                                            len(first["gross"]))
+    rms = np.sqrt(np.mean(np.square(row["errors"])))
+    rms_first = np.sqrt(np.mean(np.square(first["errors"])))
+    assert rms < 0.95 * rms_first, (rms, rms_first)
+    # and the reported covariances as honest (normalised errors)
+    assert np.mean(row["z2"]) <= 1.1 * np.mean(first["z2"]), (np.mean(row["z2"]),
+                                                              np.mean(first["z2"]))
