@@ -52,7 +52,8 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
            "REINSTATE_DEGREES", "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX",
-           "EDGE_CUT_MAX", "outlier_floor", "reinstate", "smooth_residuals", "global_model"]
+           "EDGE_CUT_MAX", "EDGE_MAX_SIGMA_RATIO", "consistent_outline", "CONSISTENT_K",
+           "CONSISTENT_PRED_K", "outlier_floor", "reinstate", "smooth_residuals", "global_model"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
 #: the grid's outline, where the local quadratic extrapolates: it does not follow a 100 um
@@ -99,6 +100,25 @@ LONE_ARM_MIN_MEASURED = 5
 #: a cross whose only tip beyond the scan's edge (or within a pixel of it) leaves by at most
 #: this share of its half-arm is measured from its other three half-arms (:func:`edge_crosses`)
 EDGE_CUT_MAX = 0.25
+#: an outline cross the outlier test rejected is measured after all where each of its four
+#: three-half-arm refits, started at its fit, lies within this many of its own sigmas of it
+#: (:func:`consistent_outline`): a fit pulled by scene content along one half-arm moves
+#: when that half-arm is left out (the sweep's gross rejected fits: 2.3-20 sigmas)
+CONSISTENT_K = 2.5
+#: ... and where its departure from its neighbours' prediction is at most this many times
+#: that prediction's standard deviation (:func:`lone_bar_prediction_cov`): at a corner a
+#: deformation the neighbours' extrapolation misses moves the prediction 3.3-5 standard
+#: deviations off the sweep's correct crosses (0.02-0.2 px off their truth, 0.26-1.1 px off
+#: the prediction); the gross rejected fits with consistent refits lay 5.7-6.2 off
+CONSISTENT_PRED_K = 5.0
+#: a cross the scan's edge cuts, measured from its three other half-arms (:func:`edge_crosses`),
+#: is at most this many times less precise (independent-pixel sigma) than the measured
+#: crosses' median: its patch is cut by the scan's edge (NaN pixels, no scene figure) and
+#: the scan's corner often cuts a second half-arm short; the sweep's correct edge crosses
+#: (0.08-0.15 px off their truth) came out 2.3-9 times less precise than their peers and were
+#: refused at :data:`RESCUE_MAX_SIGMA_RATIO`. The departure from the neighbours' prediction
+#: (the outlier test's threshold) still judges them.
+EDGE_MAX_SIGMA_RATIO = 10.0
 
 
 @dataclass
@@ -188,6 +208,11 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     # (of the two-armed crosses only: the lone bars below do not change it)
     two = arms == 2
     vfac = variance_factor(film[two], residual[two], cov[two], local_prediction, ppm, H=Hm)
+    back = consistent_outline(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm,
+                              sigma, pr.s0, pr.init_err, pr.sign, rules, pr.max_shift, ppm,
+                              vfac, scene_tv=m.scene_tv, blur=held_blur(fine),
+                              gain_ref=peer_gain(fine, least=1))
+    residual[back] = xy[back] - grid.apply_h(Hm, film[back])
     lone_arms(scan, shape, film, xy, (cov, cov_w), status, reason, arms, Hm, sigma, A_fit,
               pr.s0, pr.sign, rules, pr.max_shift, fitted, held_blur(fine), fine, ppm,
               along_max=LONE_ARM_ALONG_MAX_MM * ppm / np.sqrt(vfac), vfac=vfac, bar=bar,
@@ -641,6 +666,61 @@ def second_look(sc, shape, film, xy, cov, status, Hm, sigma, floor_px, A, s0, in
     return cand[np.isfinite(best)]
 
 
+def consistent_outline(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, s0, init_err,
+                       sign, rules, max_shift, ppm, vfac, *, scene_tv=0, blur=None,
+                       gain_ref=None) -> np.ndarray:
+    """Outline crosses rejected by the outlier test only because their neighbours'
+    prediction is poor there, measured after all by their own fit.
+
+    At a corner of the grid the neighbours' prediction extrapolates a deformation it does
+    not follow: the robustness sweep's correct corner crosses (0.02-0.2 px off their truth)
+    lay 0.26-1.1 px (3.3-5 of its standard deviations) off it, and a whole-grid polynomial
+    (:func:`reinstate`) predicts them no better. Their own fit is what tells them from a fit
+    pulled by scene content: each such cross (``status`` "rejected" by the outlier test,
+    on the outline of the measured crosses) is fitted again four times, each time without one
+    half-arm, started and anchored at its first fit ``xy`` (pixel system) with the affine of
+    the global model ``Hm`` (film mm -> pixel system) held (:func:`model_affine`), the blur
+    held at ``blur``. It is measured (its first fit kept) where every refit passes the
+    acceptance tests, is as precise and as contrasted as :func:`rescue` asks, and lies within
+    :data:`CONSISTENT_K` of its own sigma of the first fit (a fit pulled along one half-arm
+    moves when that half-arm is left out), and where the first fit lies within
+    :data:`CONSISTENT_PRED_K` standard deviations of the neighbours' prediction
+    (:func:`lone_bar_prediction_cov` of the two-armed crosses ``arms`` == 2, for the scan's
+    variance factor ``vfac``). Measured after the variance factor, they feed neither it nor
+    the global model (the lone bars' neighbours, measured next, include them).
+    ``film`` (M, 2) mm; ``cov`` the reported and the independent-pixel covariances (M, 2, 2)
+    px^2 each; ``sigma`` (M,) px the independent-pixel precision. Modifies ``status``,
+    ``reason`` and ``arms`` in place (the first fit's position and covariances are kept);
+    returns the indices measured."""
+    st = np.array(status)
+    two = np.where((st == "measured") & (np.asarray(arms) == 2))[0]
+    rej = np.array([s == "rejected" and r.startswith("outlier")
+                    for s, r in zip(status, reason, strict=True)])
+    q = np.where(rej & np.isfinite(xy).all(1) & outline(film, st == "measured"))[0]
+    if q.size == 0 or two.size < 8 or shape is None or shape.kind != "cross":
+        return q[:0]
+    r = xy - grid.apply_h(Hm, film)
+    pred = local_fit(film[q], film[two], r[two], 16, 2, n_sigma=sigma[two])
+    loo = r[two] - local_prediction(film[two], r[two], sigma=sigma[two])
+    pcov = lone_bar_prediction_cov(film, cov[0], sigma, two, q, Hm, loo, ppm, vfac) * vfac
+    sd = np.sqrt(0.5 * np.maximum(pcov[:, 0, 0] + pcov[:, 1, 1], 0.0))
+    near = np.hypot(*(r[q] - pred).T) <= CONSISTENT_PRED_K * sd
+    q = q[near]
+    if q.size == 0:
+        return q
+    s_meas = float(np.median(sigma[two]))
+    good = np.ones(q.size, bool)
+    for f3 in _three_arm_fits(sc, shape, xy[q], model_affine(Hm, film[q], ppm), s0, init_err,
+                              sign, rules, max_shift, False, scene_tv, blur, gain_ref):
+        d = np.hypot(*(f3.xy - xy[q]).T)
+        good &= (f3.ok & _rescue_like(f3, s_meas, gain_ref)
+                 & (d <= CONSISTENT_K * np.nan_to_num(f3.sigma, nan=0.0)))
+    back = q[good]
+    for i in back:
+        status[i], reason[i], arms[i] = "measured", "", 2
+    return back
+
+
 def _look_groups(film, xy, ok, ppm, A, ids, H):
     """The groups of :func:`_held_groups` for :func:`second_look`'s refits of the crosses
     ``ids``: those whose neighbours do not surround them (at the grid's corners and along its
@@ -1004,10 +1084,11 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     a local quadratic of the residuals), with the affine their positions predict held
     (:func:`position_affine`, else the model's) and the blur held. Accepted as the rescue
     accepts (:func:`rescue`: a faint cross as the first pass accepts it, within the outlier
-    test's threshold of the prediction, as precise as its peers,
-    and as contrasted). Measured last, they feed no neighbour's prediction, model or
-    variance factor; their covariance is scaled by ``vfac``. Updates ``m`` and ``arms`` in
-    place; returns the indices measured."""
+    test's threshold of the prediction, and as contrasted), but up to
+    :data:`EDGE_MAX_SIGMA_RATIO` times less precise than its peers (the rescue's cap refused
+    correct crosses whose patch the edge cuts). Measured last, they feed no neighbour's
+    prediction, model or variance factor; their covariance is scaled by ``vfac``. Updates
+    ``m`` and ``arms`` in place; returns the indices measured."""
     film, ppm, shape = pr.film, pr.px_per_mm, m.shape
     st = np.array(m.status)
     fitted = np.zeros(len(film), bool)
@@ -1044,7 +1125,7 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     thr = thr * _reach_beyond(film[q], film[meas], sigma[meas], edge[meas])
     good = f.ok & (np.hypot(*(f.xy - target).T) <= thr)
     good &= np.nan_to_num(sg, nan=np.inf) <= (
-        RESCUE_MAX_SIGMA_RATIO * float(np.median(sigma[meas])))
+        EDGE_MAX_SIGMA_RATIO * float(np.median(sigma[meas])))
     if gain_ref is not None and f.gain is not None:
         good &= np.abs(np.nan_to_num(f.gain)) >= RESCUE_MIN_GAIN * gain_ref
     got = q[good]
