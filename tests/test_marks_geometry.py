@@ -227,7 +227,8 @@ def test_bar_fit_jacobians_written_in_place_are_the_stacked_ones():
     sixth column, the other bar's cross-section, filled in place) is bit for bit the one
     stacked from its columns and concatenated, so the bars' fits are unchanged: the along
     fit by Levenberg-Marquardt from the stacked Jacobians gives exactly the same ends, blur
-    and contrast, and those lie within a tenth of a pixel of the true box's."""
+    and contrast (the NumPy path), and those lie within a tenth of a pixel of the true
+    box's."""
     from scipy.special import erf, ndtr
 
     from softplot.marks import geometry
@@ -255,7 +256,7 @@ def test_bar_fit_jacobians_written_in_place_are_the_stacked_ones():
     arms, blurs, h = [24.0, 28.0, 33.0], [0.7, 1.1, 1.8], 1.0
     prof = np.array([_box(u, 0.05, 1.0, -0.5 * a + 0.4, 0.5 * a + 0.4, s)
                      + rng.normal(0, 0.02, u.size) for a, s in zip(arms, blurs, strict=True)])
-    got = _fit_along(u, prof, 8.0, 20.0, centre=3.0, s0=1.0, width=2.0 * h)
+    got = _fit_along(u, prof, 8.0, 20.0, centre=3.0, s0=1.0, width=2.0 * h, compiled=False)
     starts = [geometry._along_start(u, p, 8.0, 20.0, 3.0) for p in prof]
     k_max = 1.0 / max(float(erf(0.5 * h / np.sqrt(2.0))), 1e-3) - 1.0
 
@@ -277,3 +278,148 @@ def test_bar_fit_jacobians_written_in_place_are_the_stacked_ones():
         assert g == (r[2], r[3], r[4], r[1])  # (a1, a2, s, c), bit for bit
         assert abs(g[0] - (-0.5 * a + 0.4)) < 0.1 and abs(g[1] - (0.5 * a + 0.4)) < 0.1
         assert abs(g[2] - s) < 0.1 * s
+
+
+def _profiles(rng, u, v, K):
+    """K noisy blurred boxes along (arm 12-50 px, blur 0.4-3 px, off centre by up to 2 px,
+    a darker crossing) and across (width 0.6-4 px, blur 1 px) at the samples ``u``, ``v``
+    (mark frame px), a profile without a bar among each."""
+    from softplot.marks.geometry import _box
+
+    arms, blurs = rng.uniform(12.0, 50.0, K), rng.uniform(0.4, 3.0, K)
+    off, widths = rng.uniform(-2.0, 2.0, K), rng.uniform(0.6, 4.0, K)
+    along = [_box(u, 0.1, 1.0, o - 0.5 * a, o + 0.5 * a, s) + 0.3 * _box(u, 0, 1.0, -1, 1, s)
+             + rng.normal(0, 0.04, u.size) for a, s, o in zip(arms, blurs, off, strict=True)]
+    across = [_box(v, 0.1, 1.0, o - 0.5 * w, o + 0.5 * w, 1.0) + rng.normal(0, 0.03, v.size)
+              for w, o in zip(widths, 0.2 * off, strict=True)]
+    along[K // 2] = rng.normal(0, 0.04, u.size)
+    across[K // 3] = np.full(v.size, -0.05)  # no contrast
+    return along, across, arms, widths
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_profile_fits_are_the_numpy_fits(seed):
+    """The profiles' Levenberg-Marquardt fits compiled (the model, its Jacobian and the
+    damped steps in one pass per bar) give the NumPy batch's ends, blur, contrast and
+    widths to 1e-9 px, the same bars refused (no bar, no contrast), and the true arms
+    and (lines of twice the blur and more) widths."""
+    from softplot.marks import kernels
+    from softplot.marks.geometry import _fit_across, _fit_along
+
+    if not kernels.ready():
+        pytest.skip("numba unavailable")
+    rng = np.random.default_rng(seed)
+    u = np.arange(-60.0, 60.0 + 1e-9, 0.5)
+    v = np.arange(-9.0, 9.0 + 1e-9, 0.25)
+    along, across, arms, widths = _profiles(rng, u, v, 12)
+    for s0 in (1.0, 2.5):
+        fc = _fit_along(u, along, 5.0, 40.0, centre=4.0, s0=s0, width=2.0, compiled=True)
+        fn = _fit_along(u, along, 5.0, 40.0, centre=4.0, s0=s0, width=2.0, compiled=False)
+        assert [f is None for f in fc] == [f is None for f in fn]
+        assert fc[6] is None and sum(f is not None for f in fc) >= 10
+        for a, b, arm in zip(fc, fn, arms, strict=True):
+            if a is not None:
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+                assert a[1] - a[0] == pytest.approx(arm, abs=max(0.75, 0.04 * arm))
+    fc = _fit_across(v, across, 1.0, 2.0, compiled=True)
+    fn = _fit_across(v, across, 1.0, 2.0, compiled=False)
+    assert [f is None for f in fc] == [f is None for f in fn] and fc[4] is None
+    for a, b, w in zip(fc, fn, widths, strict=True):
+        if a is not None:
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+            if w >= 2.0:  # resolved: twice the blur
+                assert a[0] == pytest.approx(w, abs=0.35)
+
+
+def test_compiled_profile_fit_steps_as_numpy():
+    """The compiled Levenberg-Marquardt takes NumPy's steps: after 1, 3 and 30 iterations
+    the same parameters to 1e-9, its bounds held (the far end stopped at its bound), and a
+    fit with nothing to improve (a zero profile from a zero contrast) left at its start."""
+    from softplot.marks import kernels
+    from softplot.marks.geometry import _ACROSS, _ALONG, _box, _box_jac, _lm, _lm_compiled
+
+    if not kernels.ready():
+        pytest.skip("numba unavailable")
+    u = np.arange(-30.0, 30.0 + 1e-9, 0.5)
+    prof = np.stack([_box(u, 0.0, 1.0, -10.0, 12.0, 1.2), np.zeros_like(u)])
+    p0 = [[0.0, 0.8, -8.0, 9.0, 1.0, 0.0], [0.0, 0.0, -8.0, 9.0, 1.0, 0.0]]
+    lo, hi = [-np.inf, 0.0, -30.0, 0.0, 0.3, 0.0], [np.inf, np.inf, 0.0, 11.0, 10.0, 0.5]
+
+    def rj(q, k):
+        qc = q[:, :, None]
+        f, J = _box_jac(u, *np.moveaxis(qc[:, :5], 1, 0), cols=6)
+        J[..., 5] = 0.0  # h = 0: the crossing adds nothing
+        return f - prof[k], J
+
+    for it in (1, 3, 30):
+        got = _lm_compiled(_ALONG, u, prof, p0, lo, hi, h=0.0, iterations=it)
+        want = _lm(lambda q, k: rj(q, k), p0, lo, hi, iterations=it)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, equal_nan=True)
+    assert np.array_equal(got[1], p0[1])
+    assert got[0, 3] == 11.0 and got[0, 2] == pytest.approx(-10.0, abs=0.2)  # held at 11
+    across = _lm_compiled(_ACROSS, u, prof[:1], [[0.0, 0.5, 0.0, 10.0]], -np.inf, np.inf,
+                          s_fix=1.2)
+    assert across[0] == pytest.approx([0.0, 1.0, 1.0, 22.0], abs=1e-6)
+
+
+def test_compiled_bilinear_samples_are_numpy_bit_for_bit():
+    """The profiles' samples interpolated in one compiled pass are NumPy's to the bit (the
+    same float64 weights, the result rounded to the image's dtype, laid out in memory as
+    NumPy lays it out, so that means over an axis add alike), inside the window, beyond its
+    edges and on a window of 2 x 2 pixels."""
+    from softplot.marks import kernels
+    from softplot.marks.geometry import _bilinear, _bilinear_numpy
+
+    if not kernels.ready():
+        pytest.skip("numba unavailable")
+    rng = np.random.default_rng(8)
+    for h, w in ((2, 2), (37, 61), (90, 3)):
+        img = (rng.normal(0.3, 0.2, (h, w)) * (-1) ** h).astype(np.float32)
+        rows = rng.uniform(-3.0, h + 3.0, (2, 9, 17))
+        cols = rng.uniform(-3.0, w + 3.0, (2, 9, 17))
+        rows[0, 0, :3], cols[0, 0, :3] = [0.0, h - 1.0, h - 1.0], [0.0, w - 1.0, 0.0]
+        sel = rng.random(17) < 0.5
+        # laid out in C order, and in F order as a column selection leaves it
+        for r, c in ((rows, cols), (rows[0][:, sel], cols[0][:, sel]),
+                     (rows[:, :, sel], cols[:, :, sel])):
+            got = _bilinear(img, r, c, compiled=True)
+            want = _bilinear_numpy(img, r, c)
+            assert got.dtype == want.dtype == np.float32 and got.shape == want.shape
+            assert got.strides == want.strides and np.array_equal(got, want)
+            for ax in range(got.ndim):  # a mean adds in the same order
+                assert np.array_equal(got.mean(ax), want.mean(ax))
+
+
+def test_geometry_of_a_scan_compiled_is_the_numpy_geometry(monkeypatch):
+    """The mark geometry of a rendered scan (the call detection makes) with the compiled fits
+    and samples is the NumPy path's: to 1e-9 px (arm, blur, arm spread, centre offset), to
+    1e-5 px the width of a line hardly wider than the blur (the fits' stop leaves its width
+    that much play), and the arm it measures is the true one."""
+    from softplot.marks import geometry, kernels, marksize
+
+    if not kernels.ready():
+        pytest.skip("numba unavailable")
+    img, truth = _render(1.0, 1.0)
+    calls = []
+
+    def keep(*args, **kw):
+        calls.append((args, kw))
+        return estimate_geometry(*args, **kw)
+
+    monkeypatch.setattr(marksize, "estimate_geometry", keep)
+    detect(Scan.from_array(img, dpi=truth["dpi"]), load_camera(CAM))
+    args, kw = calls[0]
+    out = {}
+    for flag in (True, False):
+        monkeypatch.setattr(geometry, "_compiled", lambda f, v=flag: v if f is None else f)
+        out[flag] = estimate_geometry(*args, **kw)
+    a, b = out[True], out[False]
+    assert a.source == b.source == "scan" and a.n == b.n >= 10
+    for k in ("arm_px", "width_px", "arm_spread_px", "width_spread_px", "blur_px"):
+        # a line about 1.7 blurs wide: width and contrast trade off along a flat valley,
+        # where the fits stop (a cost change of 1e-10 of it) within about 1e-6 px
+        tol = 1e-5 if k.startswith("width") else 1e-9
+        assert getattr(a, k) == pytest.approx(getattr(b, k), abs=tol), k
+    np.testing.assert_allclose(a.offset_px, b.offset_px, rtol=0, atol=1e-9)
+    true_arm = load_camera(CAM).reseau.arm_length_mm * truth["dpi"] / 25.4
+    assert a.arm_px == pytest.approx(true_arm, rel=0.05)

@@ -49,7 +49,7 @@ from softplot.marks.template import _ZSAT, _Phi_phi
 
 __all__ = ["AVAILABLE", "cross_model", "weigh", "influence", "invert", "advance", "gather_cross",
            "cross_template", "corr_sums", "half_arms", "local_solve", "fine_steps",
-           "scale_columns", "load", "ready"]
+           "scale_columns", "load", "ready", "on_load"]
 
 try:  # pragma: no cover - exercised where numba is installed (it is a dependency)
     if os.environ.get("SOFTPLOT_JIT", "1") == "0":
@@ -1046,6 +1046,15 @@ SPLIT_ROWS = 512
 
 _LOADED = False
 _LOAD_LOCK = threading.Lock()
+#: other modules' compiled passes, compiled (or loaded) by :func:`load` too (:func:`on_load`)
+_WARM: list = []
+
+
+def on_load(warm):
+    """Have :func:`load` call ``warm()`` (a module's compilation of its own compiled passes
+    on a tiny input); returns ``warm`` (a decorator)."""
+    _WARM.append(warm)
+    return warm
 
 
 def load() -> bool:
@@ -1090,6 +1099,8 @@ def load() -> bool:
                          h=np.zeros((1, 2, 1), np.float32))
             fine_steps(p.copy(), data, 5.0, 1.0, np.ones(12, bool), True,
                        np.zeros(1, np.int64), 1, 1, 5e-4, 0.5, state, np.zeros(1, bool))
+            for warm in _WARM:
+                warm()
         except Exception as exc:  # noqa: BLE001 - any failure of the compiler: NumPy path
             warnings.warn(f"softplot: compiled LSM kernel unavailable ({type(exc).__name__}: "
                           f"{exc}); using NumPy", RuntimeWarning, stacklevel=2)
