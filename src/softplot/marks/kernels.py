@@ -137,7 +137,7 @@ def _pixel_box(t, h, hb, inv):
 
 
 @njit(fastmath=True, cache=True, nogil=True)
-def _kernel(X, Y, S, Qs, q, length, width, M, T, Tu, Tv, U, V, J):
+def _kernel(X, Y, S, Qs, q, length, width, alpha, M, T, Tu, Tv, U, V, J):
     n, npx = X.shape
     hL = _HALF * length
     hW = _HALF * width
@@ -176,6 +176,11 @@ def _kernel(X, Y, S, Qs, q, length, width, M, T, Tu, Tv, U, V, J):
             tu_ = Lu_t * Wv + Wu_t * Lv - Wu_t * Wv
             tv_ = Lu * Wv_t + Wu * Lv_t - Wu * Wv_t
             ts_ = Lu_s * Wv + Lu * Wv_s + Wu_s * Lv + Wu * Lv_s - Wu_s * Wv - Wu * Wv_s
+            if alpha != _ONE:  # the mark's opacity (MarkShape.evaluate)
+                t_ *= alpha
+                tu_ *= alpha
+                tv_ *= alpha
+                ts_ *= alpha
             qs = Qs[i, j]
             bg = S[i, j] + gx * x + gy * y + sat * qs
             b = bb - bg
@@ -216,7 +221,8 @@ def cross_model(p, data, shape):
     out = [np.empty((n, npx), np.float32) for _ in range(6)]
     J = np.empty((n, npx, 12), np.float32)
     _kernel(np.ascontiguousarray(X), np.ascontiguousarray(Y), np.ascontiguousarray(data[4]),
-            np.ascontiguousarray(data[6]), q, _f4(shape.length), _f4(shape.width), *out, J)
+            np.ascontiguousarray(data[6]), q, _f4(shape.length), _f4(shape.width),
+            _f4(shape.opacity), *out, J)
     M, T, Tu, Tv, u, v = out
     return M, T, Tu, Tv, u, v, J
 
@@ -366,7 +372,7 @@ def influence(Ninv, J):
 
 
 @njit(fastmath=True, cache=True, nogil=True)
-def _template(q, length, width, margin, T):
+def _template(q, length, width, alpha, margin, T):
     n, h, w = T.shape
     hL = _HALF * length
     hW = _HALF * width
@@ -399,7 +405,8 @@ def _template(q, length, width, margin, T):
                 Lv = _box(v, hL, invL)[0]
                 Wu = _pixel_box(u, hW, hbu, invu)[0] * Su * ibu
                 Wv = _pixel_box(v, hW, hbv, invv)[0] * Sv * ibv
-                T[i, y, x] = Lu * Wv + Wu * Lv - Wu * Wv
+                t_ = Lu * Wv + Wu * Lv - Wu * Wv
+                T[i, y, x] = t_ * alpha if alpha != _ONE else t_
 
 
 def cross_template(shape, origin, c, A, s, hw, margin):
@@ -414,7 +421,8 @@ def cross_template(shape, origin, c, A, s, hw, margin):
     q[:, 2:6] = np.asarray(A, np.float32).reshape(n, 4)
     q[:, 6] = np.asarray(s, np.float32)
     T = np.empty((n,) + tuple(hw), np.float32)
-    _template(q, _f4(shape.length), _f4(shape.width), np.asarray(margin, np.float32), T)
+    _template(q, _f4(shape.length), _f4(shape.width), _f4(shape.opacity),
+              np.asarray(margin, np.float32), T)
     return T
 
 
@@ -724,7 +732,7 @@ def _jtj(J, Jt, Nm, npx):
 
 
 @njit(fastmath=False, cache=True, nogil=True)
-def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows, it0,
+def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, alpha, robust, rows, it0,
           max_iter, tol, conv, M, T, Tu, Tv, U, V, R, WR, W, cov, s0sq, h, done, last_it,
           fail):
     n, npx = X.shape
@@ -777,7 +785,7 @@ def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows,
             for a in range(K):
                 q[0, a] = np.float32(pi[0, a])
             pb[0] = pi[0, 8]
-            _kernel(x, y, sb, qs, q, length, width, m1, t1, tu, tv, u1, v1, J)
+            _kernel(x, y, sb, qs, q, length, width, alpha, m1, t1, tu, tv, u1, v1, J)
             _weigh(gr, m1, vd, wp, cc, sb, x, y, qs, q, pb, rob, r1, wr1, w1, J, g, rss, wsum)
             _jtj(J, Jt, Nm, nv)
             _invert(Nm, g, active, Ninv, ok)
@@ -805,7 +813,7 @@ def _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, active, length, width, robust, rows,
 
 
 def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol, conv, last,
-               converged):
+               converged, opacity=1.0):
     """The fine stage of ``lsm.lsm`` for the crosses ``rows`` from its step ``it0`` on, one
     mark at a time in one compiled pass: each step :func:`cross_model`, :func:`weigh`,
     :func:`invert`, :func:`advance` and :func:`influence` as ``lsm._step`` calls them (the
@@ -814,7 +822,7 @@ def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol,
     ``robust``), up to ``max_iter``. Updates ``p`` (N, 12), ``last`` (lsm's state of each
     mark's last step) and ``converged`` in place. Returns ``(last_it, fail)`` (N,) int: the
     last step taken (0: none) and, where a pivot vanished, the step to be taken again by
-    NumPy (else -1)."""
+    NumPy (else -1). ``opacity``: the cross's (:attr:`MarkShape.opacity`)."""
     from softplot import runtime
 
     n = len(p)
@@ -827,8 +835,9 @@ def fine_steps(p, data, length, width, active, robust, rows, it0, max_iter, tol,
     rows = c(rows, np.int64)
 
     def run(rw):
-        _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, act, _f4(length), _f4(width), bool(robust),
-              rw, int(it0), int(max_iter), float(tol), float(conv), L["M"], L["T"], L["Tu"],
+        _fine(X, Y, G, valid, S, Wp, Qs, Cc, p, act, _f4(length), _f4(width), _f4(opacity),
+              bool(robust), rw,
+              int(it0), int(max_iter), float(tol), float(conv), L["M"], L["T"], L["Tu"],
               L["Tv"], L["u"], L["v"], L["r"], L["w_rob"], L["w"], L["cov"], L["s0sq"],
               L["h"], converged, last_it, fail)
 

@@ -12,7 +12,9 @@ footprint is modelled exactly across the bars), ``B`` the background under the m
 plus a free level ``sat`` where the background estimate is saturated) and ``a + b`` the level
 of the mark itself: reseau crosses and fiducials are opaque, they
 *replace* the scene rather than add to it, so a scene gradient does not leak into the mark
-(the sign of ``b`` is the polarity: negative for dark marks). 12 parameters per mark, solved by
+(the sign of ``b`` is the polarity: negative for dark marks). A mark of opacity ``o < 1``
+(:attr:`MarkShape.opacity`) lets the scene show through with weight ``1 - o``: its template
+is ``o T``, so the model is ``B + o (a + b - B) T``. 12 parameters per mark, solved by
 Gauss-Newton for all marks at once (arrays of shape (N, P) for N marks of up to P pixels
 each).
 
@@ -64,7 +66,9 @@ class LSMResult:
     offset : (N,) float
         Background level correction ``a`` (grey units).
     gain : (N,) float
-        Contrast: mark level minus the background under the mark (``< 0`` for dark marks).
+        Contrast: mark level minus the background under the mark (``< 0`` for dark marks),
+        times the mark's opacity (:attr:`MarkShape.opacity`): the contrast as seen, as an
+        opaque model's fit gives it.
     cov : (N, 2, 2) float
         Covariance of the centre (px^2), the residuals' correlation between neighbouring
         pixels allowed for (:func:`_correlated_cov`): what is reported.
@@ -83,7 +87,8 @@ class LSMResult:
     npix : (N,) int
         Pixels used.
     level : (N,) float
-        The fitted grey level of the mark itself (``a + b`` of the model).
+        The fitted grey level of the mark itself (``a + b`` of the model; of a mark of
+        opacity below 1, the level it draws where it hides the scene entirely).
     cov_white : (N, 2, 2) float
         ``s0^2 N^-1``: the covariance if the pixels were independent (what the detector's
         acceptance and outlier tests are tuned on; too small on real scans).
@@ -465,7 +470,7 @@ def _fine_stage(p, data, shape, full, robust, init, max_iter, tol, converged):
             return last, min(it0 - 1, max_iter)
         last_it, fail = kernels.fine_steps(p, data, shape.length, shape.width, full, robust,
                                            todo, it0, max_iter, tol, CONVERGED, last,
-                                           converged)
+                                           converged, shape.opacity)
         it = int(last_it.max())
         for i in np.where(fail >= 0)[0]:  # a vanishing pivot: the pseudo-inverse's steps
             it = max(it, _steps(p, data, shape, full, robust, int(fail[i]), max_iter, tol,
@@ -906,7 +911,11 @@ def lsm(
     # correlation of the data with the fitted mark, the fitted background removed from both
     B = (p[:, 7:8] + Sb + p[:, 9:10] * X + p[:, 10:11] * Y + p[:, 11:12] * data[6]).astype(
         np.float32)
+    # the contrast as seen (a mark of opacity a darkens the scene by a (m - B)), as an
+    # opaque fit of the same mark gives it
     gain = _contrast(p, data, T)
+    if shape.opacity != 1.0:
+        gain = gain * shape.opacity
     dG = (G - B) * vf
     dM = (M - B) * vf
     dG -= (dG.sum(1) / sw)[:, None] * vf
@@ -931,6 +940,8 @@ def lsm(
         num = (wk * T * (G - B)).sum(1, dtype=float)
         part_gain[:, k] = np.where(den > 1e-6 * np.maximum(wk.sum(1), 1e-12), num /
                                    np.maximum(den, 1e-30), np.nan)
+    if shape.opacity != 1.0:  # (T is the template times the opacity: as gain, as seen)
+        part_gain *= shape.opacity
 
     return LSMResult(
         centre=p[:, 0:2] + ref,

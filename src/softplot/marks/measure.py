@@ -16,6 +16,7 @@ import numpy as np
 
 from softplot.marks import jpegq, scene_tv
 from softplot.marks import kernels as _kernels
+from softplot.marks import opacity as _opacity
 from softplot.marks import scene_tv as _scene_tv  # (``measure``'s argument shadows the name)
 from softplot.marks.coarse import _release_rows
 from softplot.marks.common import median_rows
@@ -149,6 +150,8 @@ class Fine:
     #: crosses measured as a lone bar: the bar's unit vector (N, 2), pixel system (x, y);
     #: NaN elsewhere (:func:`measure_one_arm`)
     bar: np.ndarray | None = None
+    #: the crosses' opacity the fits took (:attr:`MarkShape.opacity`; 1: opaque)
+    opacity: float = 1.0
 
     @property
     def sigma(self) -> np.ndarray:
@@ -165,7 +168,7 @@ class Fine:
                 kw[f.name] = list(np.array(a, dtype=object)[k])
             elif f.name == "lsm":
                 kw[f.name] = None
-            elif a is None or f.name == "scene_tv":
+            elif a is None or f.name in ("scene_tv", "opacity"):
                 kw[f.name] = a
             else:
                 kw[f.name] = a[k]
@@ -962,6 +965,8 @@ def _merge_fine(n, pieces) -> Fine:
             kw[f.name] = None
         elif f.name == "scene_tv":
             kw[f.name] = max(getattr(p, f.name) for _, p in pieces)
+        elif f.name == "opacity":
+            kw[f.name] = min(getattr(p, f.name) for _, p in pieces)
         elif f.name == "reason":
             r = [""] * n
             for k, p in pieces:
@@ -1052,7 +1057,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             max_shift: float | None = None, chunk: int = 20,
             drop_part: int | None = None, scene_tv: int = 0, auto_tv: int = 0,
             busy=None, blur: float | None = None, sigma_ref: float | None = None,
-            contrast: bool = False, gain_ref: float | str | None = None) -> Fine:
+            contrast: bool = False, gain_ref: float | str | None = None,
+            opacity: bool = False) -> Fine:
     """LSM at full resolution from initial centres, then the acceptance tests.
 
     Marks are fitted in chunks of at most ``chunk`` (bounded memory), on the process's threads;
@@ -1103,6 +1109,12 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         (:func:`faint`) is accepted only with at least ``rules.faint_gain`` of it. "set": the
         median of this call's first fits of the expected polarity (all the scan's marks at
         once); None (default): no faint mark is accepted (refits of a few marks).
+    opacity : bool
+        Crosses of an opaque ``shape`` with ``auto_tv``: where the joint scene is taken, the
+        crosses' opacity is first estimated from the scene seen through the bars of the
+        first pass's accepted fits (:func:`_estimated_opacity`), and the refits with the
+        joint scene (and the retry) fit crosses of that opacity. ``Fine.opacity`` tells
+        which was used.
     scene_tv : int
         Crosses only: after the first fit, this many refits with the scene under each cross
         estimated jointly with it (:func:`_refit_scene`); 0 keeps the opening's estimate.
@@ -1171,7 +1183,8 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # the scene-edge figures only where they decide: the first pass of an "auto" call
         want = p_i == 0 and not scene_tv and bool(auto_tv) and busy is not None
 
-        def run(k, starts=starts, ie=ie, tv=scene_tv, want=want, s0=s0, fb=fit_blur):
+        def run(k, starts=starts, ie=ie, tv=scene_tv, want=want, s0=s0, fb=fit_blur,
+                shape=shape):
             # with ``want``, the opening's estimate under the crosses with a scene edge is
             # kept for the refit with the joint scene below (not computed twice)
             held = [] if want and REUSE_OPENING else None
@@ -1186,11 +1199,13 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        def rerun(a, starts=starts, ie=ie, tv=auto_tv, s0=s0, fb=fit_blur):
+        def rerun(a, starts=starts, ie=ie, tv=auto_tv, s0=s0, fb=fit_blur, shape0=shape):
             # the refit with the joint scene (below) of one chunk ``k`` from its first fits:
             # only the crosses with a scene edge in their footprint ``e``
-            # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit
-            k, first, held, e = a
+            # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit;
+            # a fifth item: the shape to refit (the crosses' opacity found), else ``shape0``
+            k, first, held, e = a[:4]
+            shape = a[4] if len(a) > 4 else shape0
             sel = e > _scene_tv.EDGE_MIN
             if not sel.any():
                 return first
@@ -1214,9 +1229,15 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         if want and busy(edge[idx][good]):
             # the scene has sharp edges at the marks: the same fits refitted with the joint
             # scene (what a call with scene_tv=auto_tv gives, without fitting twice); the
-            # chunks refitted ahead (:class:`_Ahead`) are taken as they are
+            # chunks refitted ahead (:class:`_Ahead`) are taken as they are, unless the
+            # crosses let the scene show through (then all are refitted as such)
             scene_tv = auto_tv
             items = [(k, o[0], o[2], o[1]) for k, o in zip(parts, out, strict=True)]
+            if opacity and shape.kind == "cross" and shape.opacity == 1.0:
+                a = _estimated_opacity(scan, shape, res, good, A0[idx], s0, ie)
+                if a != 1.0:
+                    shape, ahead = shape.with_opacity(a), None
+                    items = [(k, _seen_through(f, a), h, e, shape) for k, f, h, e in items]
             res = _concat(ahead.rest(items) if ahead is not None else thread_map(rerun, items))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
                                 max_shift, sigma_ref, gain_ref)
@@ -1250,7 +1271,37 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 s0, fit_blur = held, False
     arms = np.where(ok, 2, 0) if shape.kind == "cross" else None
     return Fine(xy, cov, score, cnr, ok, reason, None, Afit, edge, scene_tv, s_fit, arms,
-                cov_w, gain, cov_j)
+                cov_w, gain, cov_j, opacity=shape.opacity)
+
+
+#: :func:`_estimated_opacity` reads at most this many of the accepted crosses (its time is
+#: on the busy scans' serial path, between the first pass and the joint scene's refits)
+OPACITY_CROSSES = 32
+
+
+def _estimated_opacity(scan, shape, res, good, A0, s0, init_err) -> float:
+    """The opacity (:func:`softplot.marks.opacity.estimate`, :func:`~softplot.marks.opacity.
+    shrink`) of the crosses of the fits ``res`` that ``good`` accepted (at most
+    :data:`OPACITY_CROSSES`, evenly spread; patches as :func:`_fit` cuts them for affines
+    ``A0``, blur ``s0``, start error ``init_err``); 1 where it cannot tell."""
+    k = np.where(good)[0]
+    if k.size == 0:
+        return 1.0
+    if k.size > OPACITY_CROSSES:  # evenly over the accepted (a few thousand pixels suffice)
+        k = k[np.round(np.linspace(0, k.size - 1, OPACITY_CROSSES)).astype(int)]
+    stack, origin = patches(scan, res.centre[k], _half(shape, A0[k], s0, init_err))
+    a, se, cnt = _opacity.estimate(stack, origin, shape, res.centre[k], res.A[k], res.s[k],
+                                   res.noise[k])
+    return _opacity.shrink(a, se, cnt)
+
+
+def _seen_through(res: LSMResult, a: float) -> LSMResult:
+    """Fits of opaque crosses ``res`` as the start of fits of crosses of opacity ``a``: the
+    mark's own level from the contrast seen (``gain``, :attr:`LSMResult.gain`)."""
+    bg = res.level - res.gain
+    out = _take(res, np.arange(len(res.level)))
+    out.level = bg + res.gain / a
+    return out
 
 
 def lone_bar(part_gain: np.ndarray, gain: np.ndarray, rules: AcceptRules) -> np.ndarray:

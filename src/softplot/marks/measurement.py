@@ -123,7 +123,7 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
                        anchor=pred[idx], max_shift=max_shift,
                        scene_tv=JOINT_PASSES if scene == "joint" else 0,
                        auto_tv=JOINT_PASSES if scene == "auto" else 0, busy=busy_scene,
-                       contrast=True, gain_ref="set")
+                       contrast=True, gain_ref="set", opacity=True)
 
     fine = fit(s0)
     held = held_blur(fine)
@@ -145,6 +145,8 @@ def measure_crosses(scan, shape: MarkShape, pr: Prediction, inside: np.ndarray,
         if _fits_better(f1, fine, pr.film[idx]):
             fine = _keep_opening(f1, fine, pr.film[idx])
     tv = fine.scene_tv
+    if fine.opacity != shape.opacity:  # the later fits take the crosses' opacity found
+        shape = shape.with_opacity(fine.opacity)
     shape_from_neighbours(scan, shape, pr.film[idx], c0[idx], pred[idx], fine, s0, init_err,
                           sign, rules, max_shift, ppm, scene_tv=tv, A0=A0[idx])
     other_sizes(scan, shape, c0[idx], A0[idx], pred[idx], fine, s0, init_err, sign, rules,

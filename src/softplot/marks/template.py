@@ -170,6 +170,12 @@ class MarkShape:
     For a dot ``radius`` is its radius. For a circle-dot ``radius`` is the radius of the
     circle's centre line, ``width`` its stroke width and ``dot_radius`` the radius of the
     central dot (0 for a plain circle).
+
+    ``opacity`` (0 < a <= 1) is the mark's opacity: a mark of opacity ``a`` and level ``m``
+    over the scene ``B`` draws ``B + a (m - B) T``, the scene showing through with weight
+    ``1 - a`` (a reseau cross on film or a print). The templates of :meth:`evaluate` and
+    :meth:`bars` are ``a T`` (and its derivatives), so that the models' ``B (1 - T) + m T``
+    is that; 1 (the default) is an opaque mark and leaves every value as it was.
     """
 
     kind: str
@@ -177,6 +183,7 @@ class MarkShape:
     width: float = 0.0
     radius: float = 0.0
     dot_radius: float = 0.0
+    opacity: float = 1.0
 
     @property
     def extent(self) -> float:
@@ -190,14 +197,27 @@ class MarkShape:
     def scaled(self, k: float) -> "MarkShape":
         """The same shape at ``k`` times the size (e.g. in a reduced overview image)."""
         return MarkShape(self.kind, self.length * k, self.width * k, self.radius * k,
-                         self.dot_radius * k)
+                         self.dot_radius * k, self.opacity)
+
+    def with_opacity(self, a: float) -> "MarkShape":
+        """The same shape of opacity ``a`` (see the class docstring)."""
+        return MarkShape(self.kind, self.length, self.width, self.radius, self.dot_radius,
+                         float(a))
+
+    def _seen(self, out):
+        """The templates ``out`` (a tuple of arrays) through the mark's opacity: unchanged
+        (the same arrays) for an opaque mark, else each times ``opacity``."""
+        if self.opacity == 1.0:
+            return out
+        a = np.float32(self.opacity)
+        return tuple(o * a for o in out)
 
     def bars(self, u, v, s, aperture=None):
         """The two bars of a cross each alone and the central square they share, blurred as
         :meth:`evaluate` blurs the cross: ``(T_u, T_v, T_c)`` at mark-frame points ``u``,
         ``v`` (px), the bar along ``u`` (long in ``u``, narrow in ``v``), the bar along
         ``v`` and the product of the two widths' profiles; :meth:`evaluate`'s cross is
-        ``T_u + T_v - T_c``."""
+        ``T_u + T_v - T_c`` (each times the :attr:`opacity`)."""
         if self.kind != "cross":
             raise ValueError("bars: a cross only")
         if aperture is None:
@@ -209,7 +229,7 @@ class MarkShape:
             Lu, Lv = box_profile(u, self.length, s_len)[0], box_profile(v, self.length, s_len)[0]
             Wu = box_pixel_profile(u, self.width, s, bu, mu)[0]
             Wv = box_pixel_profile(v, self.width, s, bv, mv)[0]
-        return Lu * Wv, Wu * Lv, Wu * Wv
+        return self._seen((Lu * Wv, Wu * Lv, Wu * Wv))
 
     def evaluate(self, u, v, s, aperture=None):
         """Template value and derivatives at mark-frame points.
@@ -229,8 +249,13 @@ class MarkShape:
         Returns
         -------
         T, dT_du, dT_dv, dT_ds : ndarray
-            The blurred mark (1 on the mark, 0 off it) and its derivatives.
+            The blurred mark (1 on the mark, 0 off it; :attr:`opacity` on it where that is
+            below 1) and its derivatives.
         """
+        return self._seen(self._evaluate(u, v, s, aperture))
+
+    def _evaluate(self, u, v, s, aperture=None):
+        """:meth:`evaluate` of the opaque mark."""
         if aperture is not None:
             bu, mu, bv, mv = aperture
             s_len = np.sqrt(np.asarray(s, np.float32) ** 2 + np.float32(1.0 / 12.0))
