@@ -317,3 +317,32 @@ def test_fine_rotations_histogrammed_at_once_are_each_cells_own():
     for i, f in enumerate(fines):
         assert np.array_equal(every[11 * i : 11 * (i + 1)], grid._histograms(d, w, 63.7, 61.2, f))
 
+
+
+def test_compiled_phase_histograms_are_numpys_to_the_bit():
+    """The lattice search's phase histograms counted in one compiled pass (point by point,
+    rotation by rotation, the order NumPy's bincount adds in) are NumPy's to the bit: peaks
+    anywhere, peaks on the nodes of a turned lattice (phases of exactly 0 and just below a
+    whole pitch), weights of zero."""
+    from softplot.marks import kernels
+
+    if not kernels.ready():
+        pytest.skip("numba unavailable")
+    rng = np.random.default_rng(9)
+    d = rng.uniform(-900, 900, (600, 2))
+    t = np.radians(3.0)
+    nodes = np.stack(np.meshgrid(np.arange(-6, 7), np.arange(-6, 7)), -1).reshape(-1, 2)
+    on = nodes @ np.array([[63.7 * np.cos(t), 63.7 * np.sin(t)],
+                           [-61.2 * np.sin(t), 61.2 * np.cos(t)]])
+    d = np.concatenate([d, on, on - 1e-12])
+    w = rng.uniform(0, 1, len(d))
+    w[::7] = 0.0
+    thetas = np.concatenate([[t, 0.0, -t], rng.uniform(-0.4, 0.4, 40)])
+    Hs = np.zeros((len(thetas), grid.PHASE_BINS, grid.PHASE_BINS))
+    grid._phase_bins(d, w, 63.7, 61.2, np.cos(thetas), np.sin(thetas), Hs)
+    want = grid._phase_counts(d, w, 63.7, 61.2, thetas)
+    assert np.array_equal(Hs, want)
+    assert Hs[0].max() >= 0.5 * w[600:].sum()  # the turned lattice's nodes pile up
+    got = grid._phase_histograms(d, w, 63.7, 61.2, thetas)
+    want = want + np.roll(want, -1, 1)
+    assert np.array_equal(got, want + np.roll(want, -1, 2))

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from softplot.camera import Reseau
+from softplot.marks import kernels
 
 __all__ = ["GridFit", "Lattice", "Identification", "fit_grid", "find_lattice", "identify",
            "projective_model", "projective_fit", "apply_h", "h_jacobian", "estimate_spacing"]
@@ -213,7 +214,22 @@ PHASE_BINS = 16
 def _phase_histograms(d, w, lx, ly, thetas):
     """Score-weighted histograms of the lattice phase of points ``d`` (N, 2) (pixel offsets
     from a reference) for lattices of pitch ``lx`` x ``ly`` px turned by each of ``thetas``
-    (A,) radians: (A, PHASE_BINS, PHASE_BINS), summed over 2 x 2 bins (circularly)."""
+    (A,) radians: (A, PHASE_BINS, PHASE_BINS), summed over 2 x 2 bins (circularly).
+    Compiled where numba works (:func:`_phase_bins`: the same values to the bit)."""
+    if kernels.ready():
+        Hs = np.zeros((len(thetas), PHASE_BINS, PHASE_BINS))
+        _phase_bins(np.ascontiguousarray(d, float), np.ascontiguousarray(
+            np.broadcast_to(w, len(d)), float), float(lx), float(ly), np.cos(thetas),
+            np.sin(thetas), Hs)
+    else:
+        Hs = _phase_counts(d, w, lx, ly, thetas)
+    Hs = Hs + np.roll(Hs, -1, 1)
+    return Hs + np.roll(Hs, -1, 2)
+
+
+def _phase_counts(d, w, lx, ly, thetas):
+    """The histograms of :func:`_phase_histograms` before the 2 x 2 sums, with NumPy (the
+    compiled pass's reference): (A, PHASE_BINS, PHASE_BINS)."""
     nb = PHASE_BINS
     ct, st = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     u = (d[None, :, 0] * ct + d[None, :, 1] * st) / lx
@@ -221,10 +237,31 @@ def _phase_histograms(d, w, lx, ly, thetas):
     bu = np.floor((u - np.floor(u)) * nb).astype(np.int64) % nb
     bv = np.floor((v - np.floor(v)) * nb).astype(np.int64) % nb
     key = (np.arange(len(thetas))[:, None] * nb + bu) * nb + bv
-    Hs = np.bincount(key.ravel(), weights=np.broadcast_to(w, key.shape).ravel(),
-                     minlength=len(thetas) * nb * nb).reshape(len(thetas), nb, nb)
-    Hs = Hs + np.roll(Hs, -1, 1)
-    return Hs + np.roll(Hs, -1, 2)
+    return np.bincount(key.ravel(), weights=np.broadcast_to(w, key.shape).ravel(),
+                       minlength=len(thetas) * nb * nb).reshape(len(thetas), nb, nb)
+
+
+@kernels.on_load
+def _warm() -> None:
+    """Compile (or load from numba's cache) :func:`_phase_bins` on a tiny input
+    (:func:`softplot.marks.kernels.load` calls it)."""
+    _phase_bins(np.zeros((1, 2)), np.ones(1), 1.0, 1.0, np.ones(1), np.zeros(1),
+                np.zeros((1, PHASE_BINS, PHASE_BINS)))
+
+
+@kernels.njit(cache=True, nogil=True)
+def _phase_bins(d, w, lx, ly, ct, st, out):
+    # _phase_counts' arithmetic point by point, rotation by rotation (the order bincount adds
+    # in): d (N, 2) pixel offsets, w (N,), ct, st (A,) the rotations' cosines and sines, out
+    # (A, nb, nb) zeros
+    nb = out.shape[1]
+    for a in range(ct.size):
+        for n in range(d.shape[0]):
+            u = (d[n, 0] * ct[a] + d[n, 1] * st[a]) / lx
+            v = (-d[n, 0] * st[a] + d[n, 1] * ct[a]) / ly
+            bu = int(np.floor((u - np.floor(u)) * nb)) % nb
+            bv = int(np.floor((v - np.floor(v)) * nb)) % nb
+            out[a, bu, bv] += w[n]
 
 
 #: a peak agrees with a lattice within this (film mm, at least 3 px): the coarse peaks'
