@@ -47,10 +47,10 @@ def test_refits_off_any_grid_are_not_a_grid():
     assert not on_a_grid(film, xy, few, sigma)
 
 
-def _left_cut(share):
-    """A Rollei at 300 dpi cut on the left so that column 0's left tips leave the scan by
+def _left_cut(share, dpi=300):
+    """A Rollei at ``dpi`` cut on the left so that column 0's left tips leave the scan by
     about ``share`` of the half-arm: (detection, truth, columns cut off, column 0's marks)."""
-    img, truth = render_scan("rollei-6006", ScanSpec(dpi=300, scene="none", noise_sigma=0.01,
+    img, truth = render_scan("rollei-6006", ScanSpec(dpi=dpi, scene="none", noise_sigma=0.01,
                                                      blur_sigma_px=1.0), 3)
     r = truth["render"]
     ext = r["arm_half_length_px"] + 0.5 * r["line_width_px"]
@@ -90,3 +90,28 @@ def test_crosses_the_scan_edge_cuts_by_half_an_arm_stay_missing():
     for m in col0:
         i = name.index(m["name"])
         assert det.status[i] == "missing" and det.reason[i] == "cut by the scan edge"
+
+
+def test_crosses_the_scan_edge_cuts_by_over_a_quarter_of_a_half_arm_are_measured(monkeypatch):
+    # at 400 dpi column 0's left tips leave the scan by 0.28-0.29 of the half-arm (the
+    # pixel's margin counted): refused as cut at an allowance of a quarter, measured from
+    # their three other half-arms at :data:`~softplot.marks.validation.EDGE_CUT_MAX`, near
+    # their truth
+    from softplot.marks import validation
+
+    with monkeypatch.context() as mp:
+        mp.setattr(validation, "EDGE_CUT_MAX", 0.25)
+        before, _, _, col0 = _left_cut(0.21, dpi=400)
+    name = list(before.name)
+    assert all(before.status[name.index(m["name"])] == "missing" for m in col0)
+    det, truth, c, col0 = _left_cut(0.21, dpi=400)
+    err, sig = [], []
+    for m in col0:
+        i = name.index(m["name"])
+        if det.status[i] == "measured":
+            err.append(np.hypot(det.xy[i][0] + c - m["x"], det.xy[i][1] - m["y"]))
+            sig.append(det.sigma[i])
+    assert len(err) >= 8, len(err)
+    err, sig = np.array(err), np.array(sig)
+    assert np.all(err <= 3.0 * sig), (err, sig)
+    assert err.max() < 0.15
