@@ -1447,13 +1447,13 @@ def _bar_refit(stack, origin, c0, A0, shape, s_fit, blur, bg, wt, fits, axis_of,
     return out
 
 
-def _other_bar_absent(fits, sign: int, share: float, strict: bool = False,
-                      min_score: float | None = None) -> np.ndarray:
+def _other_bar_absent(fits, sign: int, share: float | np.ndarray, strict: bool = False,
+                      min_score: float | np.ndarray | None = None) -> np.ndarray:
     """(N, 2) bool: for each of the two lone-bar fits of N crosses (``fits``, per axis
     ``(LSMResult, ...)``), whether the other bar's fit has less than ``share`` of its
     contrast (of the expected polarity ``sign``; ``strict``: of either sign, and a fit
     that did not run counts as there); with ``min_score``, and this bar's fit correlates
-    with its model at least that well."""
+    with its model at least that well (``share``, ``min_score``: a number or (N,))."""
     g = [np.nan_to_num(np.abs(np.where(np.sign(f[0].gain) == sign, f[0].gain, 0.0)), nan=0.0)
          for f in fits]
     other = ([np.nan_to_num(np.abs(f[0].gain), nan=np.inf) for f in fits] if strict else g)
@@ -1467,7 +1467,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
                     sign: int, rules: AcceptRules | None = None, *, max_shift: float,
                     cnr_ref: float | None = None, pred_cov: np.ndarray | None = None,
                     blur: float | None = None, gain_ref: float | None = None,
-                    absent: float | None = None, min_score: float | None = None) -> Fine:
+                    absent: float | np.ndarray | None = None,
+                    min_score: float | np.ndarray | None = None) -> Fine:
     """Crosses of which only one bar is visible (the other faded, aliased, scratched or
     covered), measured as a line: precise across the bar, nothing along it.
 
@@ -1487,7 +1488,8 @@ def measure_one_arm(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: 
     whole cross the caller's tests refused: not claimed here). With ``absent`` the other
     bar must be absent more plainly: its fit ran (finite) and its contrast, of either sign,
     is less than ``absent`` of this bar's; with ``min_score`` this bar's correlation with
-    its model is at least that (a second look at crosses measured whole).
+    its model is at least that (a second look at crosses measured whole; each a number or
+    one per cross, (N,)).
 
     The bar fixes the centre across it only: its tips are the part of a cross that fades
     first, and its length is not known (a certificate's is a starting guess). So the

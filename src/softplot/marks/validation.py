@@ -861,6 +861,17 @@ ONE_BAR_ABSENT = 0.25
 #: one-armed crosses measured whole 0.92-0.98, whole crosses on busy scenes 0.67-0.91 (of
 #: those whose other bar's fit was below ``ONE_BAR_ABSENT``, 0.73)
 ONE_BAR_MIN_SCORE = 0.85
+#: where the crosses' joint regression (:func:`softplot.marks.measure.bar_share`) finds the
+#: weaker bar below this share of the stronger's, the other bar's own fit may find up to
+#: :data:`ONE_BAR_ABSENT_CLEAR` of the bar's contrast, the bar correlating with its model at
+#: least :data:`ONE_BAR_MIN_SCORE_CLEAR`: on short, blurred arms that fit's pixels (those
+#: nearer the missing bar's axis) hold the blurred central square and the bar's own blurred
+#: flanks, which its whole-cross model gives the missing bar (the sweep's seed 53 R6C3:
+#: 0.65 of the bar, the regression 0.00); the sweep's whole crosses of one-armed renders
+#: with a regression below 0.3 and a half-plane fit below 0.7: bars correlating at most 0.83
+ONE_BAR_CLEAR_SHARE = 0.3
+ONE_BAR_ABSENT_CLEAR = 0.7
+ONE_BAR_MIN_SCORE_CLEAR = 0.9
 
 
 def _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, rules,
@@ -892,7 +903,9 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     (:func:`softplot.marks.measure.bar_share` below ``rules.bar_absent``) is fitted as a
     lone bar (:func:`_one_arm_fits`) from its neighbours' leave-one-out prediction; where
     one bar passes, correlates with its model at least :data:`ONE_BAR_MIN_SCORE` and the
-    other's fit finds less than :data:`ONE_BAR_ABSENT` of its contrast, the lone bar
+    other's fit finds less than :data:`ONE_BAR_ABSENT` of its contrast (where the regression
+    finds less than :data:`ONE_BAR_CLEAR_SHARE`: at least :data:`ONE_BAR_MIN_SCORE_CLEAR` and
+    less than :data:`ONE_BAR_ABSENT_CLEAR`), the lone bar
     replaces the whole cross's fit (position across the bar, the prediction along it with
     its variance, :func:`lone_bar_prediction_cov`; ``arms`` 1). A whole cross, both bars
     seen, is left as it is. ``xy`` (N, 2) pixel system, ``film`` (N, 2) mm, ``cov``: the
@@ -908,7 +921,9 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
         return np.zeros(0, int)
     # the fits only where the crosses' bars look unlike each other (a cheap regression)
     share = bar_share(sc, shape, xy[q], A[q], blur if blur is not None else s0, sign)
-    q = q[np.nan_to_num(share, nan=1.0) < (rules or AcceptRules()).bar_absent]
+    share = np.nan_to_num(share, nan=1.0)
+    keep = share < (rules or AcceptRules()).bar_absent
+    q, clear = q[keep], share[keep] < ONE_BAR_CLEAR_SHARE
     if q.size == 0:
         return np.zeros(0, int)
     r = xy - grid.apply_h(Hm, film)
@@ -928,8 +943,9 @@ def one_bar_crosses(sc, shape, film, xy, cov, status, arms, Hm, sigma, A, s0, si
     pcov = lone_bar_prediction_cov(film, cov[0], sigma, rest, q, Hm,
                                    loo[np.searchsorted(meas, rest)], ppm, vfac)
     f1 = _one_arm_fits(sc, shape, film, xy, st, q, meas, target, pcov, A, s0, sign, rules,
-                       max_shift, blur, fine, ppm, absent=ONE_BAR_ABSENT,
-                       min_score=ONE_BAR_MIN_SCORE)
+                       max_shift, blur, fine, ppm,
+                       absent=np.where(clear, ONE_BAR_ABSENT_CLEAR, ONE_BAR_ABSENT),
+                       min_score=np.where(clear, ONE_BAR_MIN_SCORE_CLEAR, ONE_BAR_MIN_SCORE))
     ok = np.where(f1.ok)[0]
     xy[q[ok]], cov[0][q[ok]], cov[1][q[ok]] = f1.xy[ok], f1.cov[ok], f1.cov_white[ok]
     arms[q[ok]] = 1
