@@ -51,7 +51,7 @@ def _along_z():
 
 
 def test_lone_bars_report_their_error_along_the_bar():
-    """RMS 0.74, median |z| 0.42 (0.55 and 0.14 with the old variance; Gaussian: 1, 0.67)."""
+    """RMS 0.74, median |z| 0.42 (0.56 and 0.20 with the old variance; Gaussian: 1, 0.67)."""
     z = _along_z()
     assert 0.67 < np.sqrt(np.mean(z**2)) < 1.5, z
     assert np.median(np.abs(z)) > 0.3, z
@@ -68,6 +68,10 @@ def _spread_with_floor(film, cov, sigma, meas, q, H, loo, ppm, vfac):
 
 
 def test_the_departures_spread_overstates_it(monkeypatch):
-    """The counterfactual: the departures' spread with its 0.1 px floor as the variance."""
+    """The counterfactual: the departures' spread with its 0.1 px floor as the variance fails
+    both of the test above's bounds on its errors' size (RMS 0.56, median |z| 0.17-0.20 as
+    the crosses that enter the neighbours' prediction change)."""
     monkeypatch.setattr(V, "lone_bar_prediction_cov", _spread_with_floor)
-    assert np.median(np.abs(_along_z())) < 0.2
+    z = _along_z()
+    assert np.sqrt(np.mean(z**2)) < 0.67, z
+    assert np.median(np.abs(z)) < 0.3, z
