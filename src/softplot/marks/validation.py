@@ -27,7 +27,9 @@ from softplot.marks import grid
 from softplot.marks.common import inverse_2x2
 from softplot.marks.measure import AcceptRules, bar_share, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
+from softplot.marks.neighbour_prior import neighbour_update
 from softplot.marks.neighbours import (
+    _nearest,
     local_fit,
     local_prediction,
     outline,
@@ -232,8 +234,26 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     # crosses the scan's edge cuts by one tip: measured last, so that they feed no model
     got = edge_crosses(scan, pr, m, arms, Hm, vfac, floor_px, dep, rules)
     residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
+    # where a two-armed cross's fit is flat along a direction, its neighbours' prediction is
+    # the better part of its position: after the variance factor and every other
+    # measurement, from the crosses' own fits (the updated positions feed nothing)
+    got = neighbour_prior(film, m, two, Hm, sigma, ppm)
+    residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
                       variance_factor=vrep, bar=bar)
+
+
+def neighbour_prior(film, m: Measurement, two, H, sigma, ppm) -> np.ndarray:
+    """The measured two-armed crosses ``two`` (N bool) of ``m`` updated in place by their
+    neighbours' prediction where their fit is flat along a direction
+    (:func:`softplot.marks.neighbour_prior.neighbour_update`; ``film`` (N, 2) mm, ``H`` the
+    global model film mm -> pixel system, ``sigma`` (N,) px, ``ppm`` px per mm); returns the
+    indices updated."""
+    idx = np.where(two)[0]
+    xy2, cov2, sel = neighbour_update(film[idx], m.xy[idx], m.cov[idx], sigma[idx], H, ppm,
+                                      DEFORMATION_FLOOR_UM, prediction_cov)
+    m.xy[idx], m.cov[idx] = xy2, cov2
+    return idx[sel]
 
 
 def outlier_floor(film, status, ppm) -> np.ndarray:
@@ -1031,7 +1051,11 @@ def prediction_cov(q_film, film, H, sigma, cov) -> np.ndarray:
     q_film = np.asarray(q_film, float).reshape(-1, 2)
     film = np.asarray(film, float).reshape(-1, 2)
     M = len(film)
-    L = local_fit(q_film, film, np.eye(M), 16, 2, n_sigma=sigma)  # (Q, M) weights
+    # (Q, M) weights, non-zero only on the queries' neighbours (U): fitted to those columns
+    # of the identity alone (all M of a 1000-cross grid took seconds)
+    U = np.unique(_nearest(q_film, film, min(16, M - 1) + 1)[1])
+    L = np.zeros((len(q_film), M))
+    L[:, U] = local_fit(q_film, film, np.eye(M)[:, U], 16, 2, n_sigma=sigma)
     G = L[:, :, None, None] * np.eye(2)  # d prediction_q / d position_j (Q, M, 2, 2)
     if M >= 5:
         Jm = h_parameter_jacobian(H, film)
