@@ -87,7 +87,15 @@ def _run(seed, cache):
 
     sc, det = run_case(make_case(seed), cache=cache)
     assert sc.result and not sc.wrong and not sc.claimed, (sc.error, sc.wrong, sc.claimed)
-    return sc
+    return sc, det.to_json()
+
+
+def _leaning(doc):
+    """The names of the measured crosses the result says lean on their neighbours, and
+    whether a warning counts them."""
+    names = {m["name"] for m in doc["marks"] if m["from_neighbours"]}
+    assert all(m["status"] == "measured" for m in doc["marks"] if m["from_neighbours"])
+    return names, any("lean on their neighbours' prediction" in w for w in doc["warnings"])
 
 
 @pytest.mark.parametrize("seed", [145, 273])
@@ -100,9 +108,13 @@ def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, cache, monk
 
     with monkeypatch.context() as mp:  # the counterfactual: no prior
         mp.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
-        first = _run(seed, cache)
+        first, doc_first = _run(seed, cache)
     assert len(first.gross) >= 8, first.gross
-    sc = _run(seed, cache)
+    sc, doc = _run(seed, cache)
+    # the result says which crosses lean on their neighbours (their errors correlate)
+    assert _leaning(doc_first) == (set(), False)
+    names, warned = _leaning(doc)
+    assert len(names) >= 3 and warned, names
     assert len(sc.gross) <= len(first.gross) - 3, (sc.gross, first.gross)
     assert sc.measured == first.measured
     assert sum(sc.err2) < 0.8 * sum(first.err2), (sum(sc.err2), sum(first.err2))

@@ -456,6 +456,12 @@ def _reseau_detection(sc, cam, name, dpi, dpi_source, sign, m: Measurement, v: V
     cov = m.cov
     rows_cols = res.row_col()
     n_meas = sum(s == "measured" for s in m.status)
+    n_nb = 0 if v.from_neighbours is None else int(np.sum(
+        v.from_neighbours & (np.asarray(m.status) == "measured")))
+    if n_nb:
+        warnings = [*warnings, f"{n_nb} of the {n_meas} crosses measured lean on their "
+                    "neighbours' prediction (their own fit is flat along a direction): their "
+                    "errors correlate with their neighbours' (JSON from_neighbours)"]
     return Detection(
         image=name,
         camera=cam.name,
@@ -487,5 +493,6 @@ def _reseau_detection(sc, cam, name, dpi, dpi_source, sign, m: Measurement, v: V
         mark_geometry=mark_geometry,
         arms=v.arms,
         bar=v.bar,
+        from_neighbours=v.from_neighbours,
         variance_factor=v.variance_factor,
     )

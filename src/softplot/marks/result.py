@@ -91,6 +91,11 @@ class Detection:
         Crosses measured as a lone bar (``arms`` 1): the bar's unit vector (pixel system x,
         y), the direction along which ``cov`` holds the prediction's variance; NaN
         elsewhere.
+    from_neighbours : (N,) bool or None
+        Crosses whose own fit is flat along a direction (a road along an arm, a thin blurred
+        arm): their position and ``cov`` combine the fit with their neighbours' prediction
+        (:mod:`softplot.marks.neighbour_prior`), so their errors correlate with the
+        neighbours'; one of the warnings counts them.
     variance_factor : float
         The factor (at least 1) by which the crosses' covariances were enlarged because their
         departures from their neighbours showed larger errors than the least-squares
@@ -129,6 +134,7 @@ class Detection:
     variance_factor: float = 1.0
     ids_ambiguous: bool = False
     bar: np.ndarray | None = None
+    from_neighbours: np.ndarray | None = None
 
     @property
     def measured(self) -> np.ndarray:
@@ -179,6 +185,9 @@ class Detection:
                 "bar": (None if self.bar is None or not ok or self.status[i] != "measured"
                         or not np.isfinite(self.bar[i]).all()
                         else [_num(self.bar[i, 0], 6), _num(self.bar[i, 1], 6)]),
+                "from_neighbours": bool(self.from_neighbours is not None and ok
+                                        and self.status[i] == "measured"
+                                        and self.from_neighbours[i]),
                 "cnr": _num(self.cnr[i], 2),
                 "residual_x": _num(self.residual[i, 0], 4),
                 "residual_y": _num(self.residual[i, 1], 4),

@@ -162,6 +162,9 @@ class Validation:
     kind: str = "projective"
     variance_factor: float = 1.0
     bar: np.ndarray | None = None
+    #: (N,) bool: crosses whose position is their fit combined with the neighbours'
+    #: prediction (:func:`neighbour_prior`); None where none was
+    from_neighbours: np.ndarray | None = None
 
 
 def validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -> Validation:
@@ -239,8 +242,10 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
     # measurement, from the crosses' own fits (the updated positions feed nothing)
     got = neighbour_prior(film, m, two, Hm, sigma, ppm)
     residual[got] = m.xy[got] - grid.apply_h(Hm, film[got])
+    from_nb = np.zeros(len(film), bool)
+    from_nb[got] = True
     return Validation(H=Hm, residual=residual, rms=rms, arms=arms, departure=dep,
-                      variance_factor=vrep, bar=bar)
+                      variance_factor=vrep, bar=bar, from_neighbours=from_nb)
 
 
 def neighbour_prior(film, m: Measurement, two, H, sigma, ppm) -> np.ndarray:
