@@ -115,3 +115,21 @@ def across_over_bound(m: dict, truth: dict) -> float:
     shape = MarkShape("cross", length=t["arm_length_mm"] * ppm, width=t["line_width_mm"] * ppm)
     crb = centre_crb(shape, r["blur_sigma_px"], abs(t["contrast"]), noise, phases=2)
     return float(np.array([m["x"] - t["x"], m["y"] - t["y"]]) @ nv) / crb
+
+
+@pytest.fixture(scope="module")
+def renders(tmp_path_factory):
+    """A folder the robustness sweep's renders are kept in, one per test module (each seed
+    rendered once for a test's counterfactual and real runs)."""
+    return tmp_path_factory.mktemp("renders")
+
+
+def run_sweep_case(seed: int, renders):
+    """The robustness sweep's render ``seed`` detected and scored (renders kept in the folder
+    ``renders``): its :class:`~softplot.synthetic.sweep.Score` and the detection's JSON,
+    after checking it gave a result with no wrong row/col and no claim."""
+    from softplot.synthetic.sweep import make_case, run_case
+
+    sc, det = run_case(make_case(seed), cache=renders)
+    assert sc.result and not sc.wrong and not sc.claimed, (sc.error, sc.wrong, sc.claimed)
+    return sc, det.to_json()

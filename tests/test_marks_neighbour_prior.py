@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import run_sweep_case
 from softplot.marks import grid
 from softplot.marks.neighbour_prior import PRIOR_MIN_MARKS, neighbour_update
 from softplot.marks.validation import prediction_cov
@@ -76,18 +77,8 @@ def test_a_small_grid_keeps_its_own_fits():
     assert not sel.any() and np.array_equal(out, xy) and np.array_equal(W, cov)
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """A folder the renders are kept in (each seed rendered once for both runs)."""
-    return tmp_path_factory.mktemp("renders")
-
-
-def _run(seed, cache):
-    from softplot.synthetic.sweep import make_case, run_case
-
-    sc, det = run_case(make_case(seed), cache=cache)
-    assert sc.result and not sc.wrong and not sc.claimed, (sc.error, sc.wrong, sc.claimed)
-    return sc, det.to_json()
+def _run(seed, renders):
+    return run_sweep_case(seed, renders)
 
 
 def _leaning(doc):
@@ -99,7 +90,7 @@ def _leaning(doc):
 
 
 @pytest.mark.parametrize("seed", [145, 273])
-def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, cache, monkeypatch):
+def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, renders, monkeypatch):
     # 145: a Rollei at 485 dpi, blur 2.35 px, thin arms (0.67 x) over a busy scene, JPEG;
     # 273: a Rollei at 416 dpi, thin lines (0.67 x) over a busy scene. Their gross fits lie
     # 1-4 px off their truth with sigmas several times their peers' (normalised errors near
@@ -108,9 +99,9 @@ def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, cache, monk
 
     with monkeypatch.context() as mp:  # the counterfactual: no prior
         mp.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
-        first, doc_first = _run(seed, cache)
+        first, doc_first = _run(seed, renders)
     assert len(first.gross) >= 8, first.gross
-    sc, doc = _run(seed, cache)
+    sc, doc = _run(seed, renders)
     # the result says which crosses lean on their neighbours (their errors correlate)
     assert _leaning(doc_first) == (set(), False)
     names, warned = _leaning(doc)

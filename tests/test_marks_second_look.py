@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import run_sweep_case
 from softplot.marks import validation
 
 
@@ -22,31 +23,21 @@ def _second_look_alone(monkeypatch):
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """A folder the renders are kept in (each seed rendered once for both runs)."""
-    return tmp_path_factory.mktemp("renders")
-
-
-def _run(seed, cache):
-    from softplot.synthetic.sweep import make_case, run_case
-
-    sc, det = run_case(make_case(seed), cache=cache)
-    assert sc.result and not sc.wrong and not sc.claimed, (sc.error, sc.wrong, sc.claimed)
-    return sc
+def _run(seed, renders):
+    return run_sweep_case(seed, renders)[0]
 
 
 @pytest.mark.parametrize("seed", [398, 462])
-def test_busy_crosses_locked_beside_an_arm_are_measured_again(seed, cache, monkeypatch):
+def test_busy_crosses_locked_beside_an_arm_are_measured_again(seed, renders, monkeypatch):
     # 398: a Rollei at 430 dpi, thin arms (0.53 x) over a busy scene, JPEG q44; 462: a
     # Hasselblad at 478 dpi, blur 2.3 px, busy. Their first fits of R3C9, R8C5 (398) and
     # R3C3 (462) lock onto the scene 1.0-1.6 px off the truth (bounds 0.07-0.09 px) with
     # sigmas 2-5 times their peers', and pass the outlier test by them
     with monkeypatch.context() as mp:  # the counterfactual: no cross measured again
         mp.setattr(validation, "SECOND_LOOK_SPREAD", np.inf)
-        first = _run(seed, cache)
+        first = _run(seed, renders)
     assert first.gross, "the render was expected to hold a gross first fit"
-    sc = _run(seed, cache)
+    sc = _run(seed, renders)
     assert sc.gross == [], sc.gross
     # no cross lost, and the scan's errors smaller
     assert sc.measured >= first.measured, (sc.missed, first.missed)
@@ -55,7 +46,7 @@ def test_busy_crosses_locked_beside_an_arm_are_measured_again(seed, cache, monke
     assert np.mean(sc.z2) <= 1.1 * np.mean(first.z2), (np.mean(sc.z2), np.mean(first.z2))
 
 
-def test_clean_crosses_keep_their_four_arm_fits(cache, monkeypatch):
+def test_clean_crosses_keep_their_four_arm_fits(renders, monkeypatch):
     # 445: a Hasselblad at 1293 dpi, no gross fit. Its crosses farthest from their
     # neighbours' predictions are clean: their three-arm refits lie nearer the prediction
     # but are less precise. Taken for lying nearer (without the refit's precision test) they
@@ -63,20 +54,20 @@ def test_clean_crosses_keep_their_four_arm_fits(cache, monkeypatch):
     # second look
     with monkeypatch.context() as mp:
         mp.setattr(validation, "SECOND_LOOK_SPREAD", np.inf)
-        first = _run(445, cache)
-    sc = _run(445, cache)
+        first = _run(445, renders)
+    sc = _run(445, renders)
     assert sc.measured >= first.measured
     assert sum(sc.err2) <= 1.05 * sum(first.err2), (sum(sc.err2), sum(first.err2))
 
 
-def _cross_error(seed, cache, name):
+def _cross_error(seed, renders, name):
     """The sweep's score of ``seed`` and the error (px, pixel system of the render) of its
     cross ``name`` against the render's true centre (NaN when not measured)."""
     from softplot.synthetic.sweep import make_case, render_case, run_case
 
     case = make_case(seed)
-    sc, det = run_case(case, cache=cache)
-    truth = {t["name"]: t for t in render_case(case, cache)[1]["marks"]}
+    sc, det = run_case(case, cache=renders)
+    truth = {t["name"]: t for t in render_case(case, renders)[1]["marks"]}
     i = list(det.name).index(name)
     e = np.hypot(det.xy[i, 0] - truth[name]["x"], det.xy[i, 1] - truth[name]["y"])
     return sc, (float(e) if det.status[i] == "measured" else np.nan)
@@ -92,7 +83,7 @@ def _held_only(film, xy, ok, ppm, A, ids, H):
     return validation._held_groups(film, xy, ok, ppm, A, ids, H=H)
 
 
-def test_corner_refits_hold_the_models_affine(cache, monkeypatch):
+def test_corner_refits_hold_the_models_affine(renders, monkeypatch):
     # 145: a Rollei at 485 dpi, blur 2.35 px, thin arms (0.67 x) over a busy scene, JPEG.
     # The first fit of the outline cross R7C0 locks onto a road 4.1 px off its truth (bound
     # 0.17 px). Its neighbours do not surround it, so no affine is predicted from their
@@ -101,23 +92,23 @@ def test_corner_refits_hold_the_models_affine(cache, monkeypatch):
     # cross
     with monkeypatch.context() as mp:  # the counterfactual: the corner refits' affine free
         mp.setattr(validation, "_look_groups", _free_only)
-        first, e_first = _cross_error(145, cache, "R7C0")
+        first, e_first = _cross_error(145, renders, "R7C0")
     assert e_first > 3.0, first.gross
-    sc, e = _cross_error(145, cache, "R7C0")
+    sc, e = _cross_error(145, renders, "R7C0")
     assert e < 0.5 * e_first, (e, e_first)
     assert sc.measured >= first.measured, (sc.missed, first.missed)
     assert sum(sc.err2) < sum(first.err2), (sum(sc.err2), sum(first.err2))
 
 
-def test_corner_refits_keep_the_free_affine_where_it_fits_better(cache, monkeypatch):
+def test_corner_refits_keep_the_free_affine_where_it_fits_better(renders, monkeypatch):
     # 452: a Rollei at 465 dpi, thin arms (0.56 x). Its corner cross R10C10 refitted with the
     # model's affine held only lies 1.03 px off its truth (bound 0.05 px, gross); its refit
     # with a free affine correlates better and lies nearer: both are fitted, the better kept
     with monkeypatch.context() as mp:  # the counterfactual: the model's affine held only
         mp.setattr(validation, "_look_groups", _held_only)
-        first, e_first = _cross_error(452, cache, "R10C10")
+        first, e_first = _cross_error(452, renders, "R10C10")
     assert e_first > 1.0, first.gross
-    sc, e = _cross_error(452, cache, "R10C10")
+    sc, e = _cross_error(452, renders, "R10C10")
     assert e < e_first and sc.gross == [], (e, e_first, sc.gross)
     assert sc.measured >= first.measured, (sc.missed, first.missed)
 
