@@ -54,18 +54,18 @@ def test_nearest_is_the_trees_query_kept_by_the_points_values():
     film = np.stack(np.meshgrid(np.arange(11.0), np.arange(11.0)), -1).reshape(-1, 2) * 5.0
     q, m = film, film[1:]
     d0, j0 = cKDTree(m).query(q, k=17)
-    d, j = neighbours._nearest(q, m, 17)
+    d, j = neighbours.nearest(q, m, 17)
     assert np.array_equal(d, d0) and np.array_equal(j, j0)
-    assert neighbours._nearest(q.copy(), m.copy(), 17)[1] is j  # kept: the values decide
+    assert neighbours.nearest(q.copy(), m.copy(), 17)[1] is j  # kept: the values decide
     moved = m.copy()
     moved[40] += 0.3
-    d2, j2 = neighbours._nearest(q, moved, 17)
+    d2, j2 = neighbours.nearest(q, moved, 17)
     want = cKDTree(moved).query(q, k=17)
     assert np.array_equal(d2, want[0]) and np.array_equal(j2, want[1])
     assert not np.array_equal(d2, d)
     for i in range(neighbours.NEAREST_KEPT):
-        neighbours._nearest(q[: 10 + i], m, 5)
-    again = neighbours._nearest(q, m, 17)
+        neighbours.nearest(q[: 10 + i], m, 5)
+    again = neighbours.nearest(q, m, 17)
     assert again[1] is not j and np.array_equal(again[1], j0)
     with pytest.raises(ValueError):
         d[0, 0] = 1.0  # read-only: a caller cannot change what the next one gets

@@ -30,7 +30,8 @@ from softplot.marks import grid
 from softplot.marks.common import inverse_2x2
 from softplot.marks.neighbours import local_fit
 
-__all__ = ["neighbour_update", "neighbour_posterior", "prediction_miss", "PRIOR_FLAT",
+__all__ = ["neighbour_update", "neighbour_posterior", "prediction_miss", "deformation_miss",
+           "PRIOR_FLAT",
            "PRIOR_MIN_RATIO", "PRIOR_MIN_MARKS"]
 
 #: a cross's fit is flat where its largest variance is at least this many times the median
@@ -49,22 +50,31 @@ PRIOR_MIN_RATIO = 1.0
 PRIOR_MIN_MARKS = 25
 
 
-def prediction_miss(film, r, cov, sigma, ppm, floor_um) -> tuple[float, float]:
-    """What the neighbours' prediction misses of the film's deformation (px^2 per axis):
-    the mean square per axis of the crosses' departures from their leave-one-out predictions
-    (``r`` (M, 2) px residuals from the global model at ``film`` (M, 2) mm), less what their
-    own errors explain (their mean variance from ``cov`` (M, 2, 2) px^2, pixel system, and
-    its share the prediction carries, for unit noise), at least the deformation floor
-    ``floor_um`` (film micrometres, at ``ppm`` px per mm). ``sigma`` (M,) px the
-    prediction's weights. As :func:`~softplot.marks.validation.lone_bar_prediction_cov`.
+def deformation_miss(loo, cov, predict, ppm, floor_um) -> tuple[float, float]:
+    """What a neighbours' prediction misses of the film's deformation (px^2 per axis): the
+    mean square per axis of the crosses' departures ``loo`` (M, 2) px from their
+    leave-one-out predictions, less what their own errors explain (their mean variance from
+    ``cov`` (M, 2, 2) px^2, pixel system, and its share the prediction carries, for unit
+    noise: ``predict`` maps values (K, M, 2) at the crosses to their leave-one-out
+    predictions), plus the deformation floor ``floor_um`` (film micrometres, at ``ppm`` px
+    per mm). Shared by this prior and the lone bars' variance along the bar
+    (:func:`~softplot.marks.validation.lone_bar_prediction_cov`), each with its predictor.
     Returns the miss and that share (the median cross's)."""
-    loo = r - local_fit(film, film, r, 16, 2, n_sigma=sigma)
     own = float(np.mean(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])))
-    z = np.random.default_rng(0).standard_normal((16, len(film), 2))
-    pz = local_fit(film, film, z, 16, 2, n_sigma=sigma)
-    share = float(np.median(np.mean(pz**2, axis=(0, 2))))
+    z = np.random.default_rng(0).standard_normal((16, len(loo), 2))
+    share = float(np.median(np.mean(predict(z)**2, axis=(0, 2))))
     miss = max(float(np.mean(np.square(loo))) - own * (1.0 + share), 0.0)
     return miss + (floor_um * 1e-3 * ppm) ** 2, share
+
+
+def prediction_miss(film, r, cov, sigma, ppm, floor_um) -> tuple[float, float]:
+    """:func:`deformation_miss` of this prior's prediction, the local quadratic of the
+    residuals ``r`` (M, 2) px from the global model at ``film`` (M, 2) mm, weighted by the
+    crosses' precisions ``sigma`` (M,) px."""
+    def predict(v):
+        return local_fit(film, film, v, 16, 2, n_sigma=sigma)
+
+    return deformation_miss(r - predict(r), cov, predict, ppm, floor_um)
 
 
 def neighbour_update(film, xy, cov, sigma, H, ppm, floor_um, prediction_cov):

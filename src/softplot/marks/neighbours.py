@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from softplot.marks import kernels
 from softplot.marks.common import inverse_2x2, median_rows
 
-__all__ = ["local_fit", "local_prediction", "outline", "position_affine", "remembered"]
+__all__ = ["local_fit", "local_prediction", "nearest", "outline", "position_affine", "remembered"]
 
 
 def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=None,
@@ -52,7 +52,7 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     n_val = n_val.reshape(len(n_val) if batch else 1, len(n_film), -1)  # (B, M, C)
     B = n_val.shape[0]
     k = min(k_max, len(n_film) - 1)
-    d, j = _nearest(q_film, n_film, k + 1)
+    d, j = nearest(q_film, n_film, k + 1)
     # leave the query point out (a zero-distance match), else the farthest neighbour
     drop = np.where(d[:, 0] < 1e-9, 0, k)
     keep = np.arange(k + 1)[None, :] != drop[:, None]
@@ -107,13 +107,13 @@ def local_fit(q_film, n_film, n_val, k_max=16, degree=2, n_sigma=None, n_dev=Non
     return c0, grad, (var[:, 1, 1] + var[:, 2, 2]) / unit**2
 
 
-#: the neighbour queries :func:`_nearest` keeps (the last ones asked for)
+#: the neighbour queries :func:`nearest` keeps (the last ones asked for)
 NEAREST_KEPT = 8
 _NEAREST: OrderedDict = OrderedDict()
 _NEAREST_LOCK = threading.Lock()
 
 
-def _nearest(q_film, n_film, k):
+def nearest(q_film, n_film, k):
     """``cKDTree(n_film).query(q_film, k)``: the distances and indices (Q, k) of the ``k``
     nearest of the points ``n_film`` (M, 2) to each of ``q_film`` (Q, 2) (film mm), ties in
     the tree's order. The last :data:`NEAREST_KEPT` queries are kept by the values of their

@@ -27,11 +27,11 @@ from softplot.marks import grid
 from softplot.marks.common import inverse_2x2
 from softplot.marks.measure import AcceptRules, bar_share, measure, measure_one_arm, peer_gain
 from softplot.marks.measurement import Measurement, held_blur
-from softplot.marks.neighbour_prior import neighbour_update
+from softplot.marks.neighbour_prior import deformation_miss, neighbour_update
 from softplot.marks.neighbours import (
-    _nearest,
     local_fit,
     local_prediction,
+    nearest,
     outline,
     position_affine,
     remembered,
@@ -1058,7 +1058,7 @@ def prediction_cov(q_film, film, H, sigma, cov) -> np.ndarray:
     M = len(film)
     # (Q, M) weights, non-zero only on the queries' neighbours (U): fitted to those columns
     # of the identity alone (all M of a 1000-cross grid took seconds)
-    U = np.unique(_nearest(q_film, film, min(16, M - 1) + 1)[1])
+    U = np.unique(nearest(q_film, film, min(16, M - 1) + 1)[1])
     L = np.zeros((len(q_film), M))
     L[:, U] = local_fit(q_film, film, np.eye(M)[:, U], 16, 2, n_sigma=sigma)
     G = L[:, :, None, None] * np.eye(2)  # d prediction_q / d position_j (Q, M, 2, 2)
@@ -1092,13 +1092,9 @@ def lone_bar_prediction_cov(film, cov, sigma, meas, q, H, loo, ppm, vfac) -> np.
     meas = np.asarray(meas)
     Cm = np.asarray(cov, float)[meas] * vfac
     sg = np.asarray(sigma, float)[meas]
-    own = float(np.mean(0.5 * (Cm[:, 0, 0] + Cm[:, 1, 1])))
-    z = np.random.default_rng(0).standard_normal((16, len(meas), 2))
-    pz = local_prediction(film[meas], z, sigma=sg)
-    share = float(np.median(np.mean(pz**2, axis=(0, 2))))
-    miss = max(float(np.mean(np.square(loo))) - own * (1.0 + share), 0.0)
     floor_um = DEFORMATION_FLOOR_UM if len(meas) >= MIN_MARKS else GLOBAL_DEFORMATION_FLOOR_UM
-    miss += (floor_um * 1e-3 * ppm) ** 2
+    miss, _ = deformation_miss(loo, Cm, lambda v: local_prediction(film[meas], v, sigma=sg),
+                               ppm, floor_um)
     pc = prediction_cov(film[q], film[meas], H, sg, Cm) + miss * np.eye(2)
     return pc / vfac
 
