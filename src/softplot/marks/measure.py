@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import threading
 import warnings
 from dataclasses import dataclass, fields
@@ -1199,13 +1200,12 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
         # the marks were chunked. A set that fits one chunk (refits, retries) is one: split in
         # two it was slower (the fit of a few marks is mostly Python, which holds the GIL).
         # The chunking does not depend on the thread count (the same results on any machine)
-        def rerun(a, starts=starts, ie=ie, tv=auto_tv, s0=s0, fb=fit_blur, shape0=shape):
+        def rerun(a, starts=starts, ie=ie, tv=auto_tv, s0=s0, fb=fit_blur, shape=shape):
             # the refit with the joint scene (below) of one chunk ``k`` from its first fits:
             # only the crosses with a scene edge in their footprint ``e``
             # (:data:`softplot.marks.scene_tv.EDGE_MIN`): the others keep the opening's fit;
-            # a fifth item: the shape to refit (the crosses' opacity found), else ``shape0``
-            k, first, held, e = a[:4]
-            shape = a[4] if len(a) > 4 else shape0
+            # ``shape`` the crosses' (with the opacity found, below)
+            k, first, held, e = a
             sel = e > _scene_tv.EDGE_MIN
             if not sel.any():
                 return first
@@ -1233,12 +1233,14 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
             # crosses let the scene show through (then all are refitted as such)
             scene_tv = auto_tv
             items = [(k, o[0], o[2], o[1]) for k, o in zip(parts, out, strict=True)]
+            refit = rerun
             if opacity and shape.kind == "cross" and shape.opacity == 1.0:
                 a = _estimated_opacity(scan, shape, res, good, A0[idx], s0, ie)
                 if a != 1.0:
                     shape, ahead = shape.with_opacity(a), None
-                    items = [(k, _seen_through(f, a), h, e, shape) for k, f, h, e in items]
-            res = _concat(ahead.rest(items) if ahead is not None else thread_map(rerun, items))
+                    items = [(k, _seen_through(f, a), h, e) for k, f, h, e in items]
+                    refit = functools.partial(rerun, shape=shape)
+            res = _concat(ahead.rest(items) if ahead is not None else thread_map(refit, items))
             good, why = _accept(res, starts[idx], A0[idx], s0, sign, rules, anchor[idx],
                                 max_shift, sigma_ref, gain_ref)
         if contrast:
