@@ -112,3 +112,41 @@ def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, renders, mo
     # the reported covariances as honest as before (normalised errors)
     z, z_first = np.sqrt(np.mean(sc.z2)), np.sqrt(np.mean(first.z2))
     assert 0.67 < z < 1.5 and z <= 1.15 * z_first, (z, z_first)
+
+
+def test_the_qc_plot_rings_the_crosses_that_lean_on_their_neighbours(tmp_path, monkeypatch):
+    """The QC plot shows which crosses' positions lean on their neighbours' prediction
+    (a legend entry counting them, as the JSON flags them); none with the prior off."""
+    from matplotlib.figure import Figure
+
+    from softplot.camera import load_camera
+    from softplot.io import Scan
+    from softplot.marks import detect, neighbour_prior
+    from softplot.marks.qc import plot_qc
+    from softplot.synthetic.sweep import make_case, render_case
+
+    case = make_case(273)
+    img, truth, _, _ = render_case(case, tmp_path)
+    bits = truth["bit_depth"] if img.dtype == np.uint16 else 8
+    scan = Scan.from_array(img, dpi=truth["dpi"], bit_depth=bits)
+    saved = []
+    real = Figure.savefig
+
+    def spy(self, *a, **k):
+        saved.append([t.get_text() for ax in self.axes if ax.get_legend()
+                      for t in ax.get_legend().get_texts()])
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(Figure, "savefig", spy)
+
+    def labels():
+        det = detect(scan, load_camera(case.camera), dpi=truth["dpi"], rotate=case.rotate)
+        plot_qc(det, scan, tmp_path / "qc.png")
+        n = int(np.sum(det.from_neighbours & det.measured))
+        return n, [t for t in saved[-1] if t.startswith("from neighbours")]
+
+    n, got = labels()
+    assert n >= 3 and got == [f"from neighbours ({n})"], (n, got)
+    with monkeypatch.context() as mp:
+        mp.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+        assert labels() == (0, [])

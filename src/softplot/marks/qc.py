@@ -2,7 +2,9 @@
 
 Left: the scan's outline with every certificate mark at its measured (or predicted) pixel
 position, its residual vector against the global film -> pixel model exaggerated, a scale bar
-for the residuals, and the missing/rejected marks flagged. Right: image chips of the worst
+for the residuals, and the missing/rejected marks flagged; crosses measured across one bar only
+ringed by a square, those whose position leans on their neighbours' prediction
+(``Detection.from_neighbours``) by a diamond. Right: image chips of the worst
 marks (largest residual) with the fitted centre.
 """
 
@@ -84,6 +86,11 @@ def plot_qc(det: Detection, scan, path: str | Path, n_chips: int = 6, dpi: int =
     if one.any():  # measured across one bar only: ringed
         ax.scatter(pos[one, 0], pos[one, 1], marker="s", s=60, facecolors="none",
                    edgecolors="tab:orange", label=f"one bar only ({int(one.sum())})")
+    nb = (meas & np.asarray(det.from_neighbours, bool) if det.from_neighbours is not None
+          else np.zeros_like(meas))
+    if nb.any():  # positions that lean on the neighbours' prediction: diamond-ringed
+        ax.scatter(pos[nb, 0], pos[nb, 1], marker="D", s=60, facecolors="none",
+                   edgecolors="tab:purple", label=f"from neighbours ({int(nb.sum())})")
     ok = meas & np.isfinite(mag)
     if ok.any():
         ax.quiver(pos[ok, 0], pos[ok, 1], res[ok, 0] * exag, res[ok, 1] * exag, angles="xy",
