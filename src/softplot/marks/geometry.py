@@ -40,6 +40,7 @@ from scipy.special import erf, ndtr
 from softplot.marks import kernels
 from softplot.marks.common import median1, median_rows
 from softplot.marks.template import MarkShape
+from softplot.runtime import concurrent, thread_map
 
 __all__ = ["MarkGeometry", "estimate_geometry", "width_candidates", "ARM_RANGE", "WIDTH_RANGE"]
 
@@ -376,9 +377,22 @@ def _lm_compiled(kind, x, data, p, lo, hi, h=0.0, s_fix=1.0, iterations=30):
     out = np.empty_like(p)
     lo, hi = (np.ascontiguousarray(np.broadcast_to(np.asarray(b, float), p.shape))
               for b in (lo, hi))
-    _lm_boxes(kind, np.ascontiguousarray(x, float), np.ascontiguousarray(data, float), p, lo,
-              hi, float(h), float(s_fix), int(iterations), out)
+    x = np.ascontiguousarray(x, float)
+    data = np.ascontiguousarray(data, float)
+
+    def part(k):  # problems k (a slice) alone: each problem's fit is its own
+        _lm_boxes(kind, x, data[k], p[k], lo[k], hi[k], float(h), float(s_fix),
+                  int(iterations), out[k])
+
+    # two halves on the process's threads (the pass releases the GIL)
+    K = len(p)
+    half = K // 2 if K >= LM_SPLIT and concurrent() else K
+    thread_map(part, [slice(0, half), slice(half, K)] if half < K else [slice(0, K)])
     return out
+
+
+#: problems from which :func:`_lm_compiled` fits two halves on the process's threads
+LM_SPLIT = 8
 
 
 def _compiled(flag) -> bool:
@@ -562,8 +576,10 @@ def estimate_geometry(grey_at, xy: np.ndarray, A: np.ndarray, guess: MarkShape, 
     hi_half = 0.5 * ARM_RANGE[1] * L0 + 2.0 * w0
     centre = min(1.5 * w0 + 2.0, 0.6 * lo_half)
     grid = _sample_grid(u, v)
-    bars = [_bar_profiles(grey_at, xy[i], A[i], u, v, grid, w0, lo_half, sign, H, V)
-            for i in order]
+    # each cross's profiles its own: sampled on the process's threads (the samples are
+    # compiled and release the GIL)
+    bars = thread_map(lambda i: _bar_profiles(grey_at, xy[i], A[i], u, v, grid, w0, lo_half,
+                                              sign, H, V), order)
     axis = [k for pair in bars if pair is not None for k, b in enumerate(pair) if b is not None]
     bars = [b for pair in bars if pair is not None for b in pair if b is not None]
     if bars:

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from softplot.camera import Reseau
 from softplot.marks import kernels
+from softplot.runtime import concurrent, thread_map, threads
 
 __all__ = ["GridFit", "Lattice", "Identification", "fit_grid", "find_lattice", "identify",
            "projective_model", "projective_fit", "apply_h", "h_jacobian", "estimate_spacing"]
@@ -561,23 +562,39 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
         px_per_mm = sp / min(px, py)
     lx, ly = px * px_per_mm, py * px_per_mm
     square = abs(lx - ly) < 0.08 * min(lx, ly)
+    hyps = _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg, square)
+    agree_by = np.ones_like(score) if by_count else score
+
+    def refine(h):
+        theta, p0, _ = h
+        return _lattice_at(xy, agree_by, theta, p0, lx, ly, min(px, py), scale_tol)
+
+    def skipped(n_cell):  # too few peaks in its cell to gather as many as the best lattice
+        return best_key is not None and 1.5 * n_cell + 3 < best_key[0]
+
     best, best_key = None, None
-    for theta, p0, n_cell in _lattice_search(xy, score, lx, ly, rotate_deg, max_rotation_deg,
-                                             square):
-        if best_key is not None and 1.5 * n_cell + 3 < best_key[0]:
-            continue  # too few peaks in its cell to gather as many as the best lattice
-        got = _lattice_at(xy, np.ones_like(score) if by_count else score, theta, p0, lx, ly,
-                          min(px, py), scale_tol)
-        if got is None:
-            continue
-        p0, Bc, idx, cand, (n_agree, med) = got
-        # among equals the lattice nearer the stated turn (in steps of 5 degrees), then the
-        # one its peaks lie closer to
-        turn = np.degrees(np.arctan2(Bc[1, 0], Bc[0, 0])) - rotate_deg
-        key = (n_agree, -round(abs((turn + 180.0) % 360.0 - 180.0) / 5.0), -med)
-        if best_key is None or key > best_key:
-            best = Lattice(p0=p0, B=Bc, idx=idx, cand=cand, px_per_mm=float(px_per_mm))
-            best_key = key
+    width = threads() if concurrent() else 1
+    i = 0
+    while i < len(hyps):
+        # the next hypotheses the best lattice so far does not rule out, refined a few at a
+        # time on the process's threads (each its own), then taken in their order as one
+        # by one: one the batch's earlier ones rule out is dropped (the same lattice)
+        batch = []
+        while i < len(hyps) and len(batch) < width:
+            if not skipped(hyps[i][2]):
+                batch.append(hyps[i])
+            i += 1
+        for h, got in zip(batch, thread_map(refine, batch), strict=True):
+            if got is None or skipped(h[2]):
+                continue
+            p0, Bc, idx, cand, (n_agree, med) = got
+            # among equals the lattice nearer the stated turn (in steps of 5 degrees), then
+            # the one its peaks lie closer to
+            turn = np.degrees(np.arctan2(Bc[1, 0], Bc[0, 0])) - rotate_deg
+            key = (n_agree, -round(abs((turn + 180.0) % 360.0 - 180.0) / 5.0), -med)
+            if best_key is None or key > best_key:
+                best = Lattice(p0=p0, B=Bc, idx=idx, cand=cand, px_per_mm=float(px_per_mm))
+                best_key = key
     return best
 
 
