@@ -280,6 +280,7 @@ def test_half_arm_check_removes_scene_pull(monkeypatch):
     # the half-arm test judged alone: the neighbours' prior for flat fits, which comes last
     # and takes up much of this pull too, off in both runs
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
     label, cam, kw, seed = next(c for c in CASES if "blur_sigma_px=1.0-dpi=2400-noise_sigma=0.01"
                                 "-polarity=negative-scene=busy" in c[0])
     img, truth = render(cam, seed, **kw)
@@ -310,6 +311,7 @@ def test_shape_from_neighbours_removes_scene_pull(monkeypatch):
 
     # the test judged alone: the neighbours' prior for flat fits off in both runs
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
     det_mod = importlib.import_module("softplot.marks.measurement")
 
     def by_correlation(pk, image, sign, arm_half, width, s, n_in, keep, turn_deg=0.0):

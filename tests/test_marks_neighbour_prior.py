@@ -69,6 +69,61 @@ def test_flat_fits_take_their_neighbours_prediction_honestly(seed):
     assert np.all(np.linalg.eigvalsh(cov[sel] - W[sel]) > -1e-12)
 
 
+def _even_grid(seed, n=20, pitch=10.0, sigma_px=0.5, spread=0.5):
+    """:func:`_grid` of crosses whose fits are all imprecise and none long along a
+    direction (a busy scan: isotropic covariances, sigmas log-normal about ``sigma_px``
+    with log spread ``spread``), each measured with an error drawn from its covariance."""
+    film, H, true, _, _, _ = _grid(seed, n, pitch)
+    rng = np.random.default_rng(seed + 100)
+    sig = sigma_px * np.exp(spread * rng.standard_normal(len(film)))
+    cov = sig[:, None, None] ** 2 * np.eye(2)
+    return film, H, true, true + sig[:, None] * rng.standard_normal((len(film), 2)), cov
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fits_far_less_precise_than_their_neighbours_prediction_take_it(seed, monkeypatch):
+    # a scan whose scene disturbs the fits: every fit imprecise, none flat beside its peers;
+    # where a fit's variance is PRIOR_ANY_RATIO times its neighbours' prediction's, the
+    # update takes it there
+    from softplot.marks import neighbour_prior
+
+    film, H, true, xy, cov = _even_grid(seed)
+    with monkeypatch.context() as mp:  # the counterfactual: the flat fits alone
+        mp.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
+        out0, _, sel0 = neighbour_update(film, xy, cov, _sigma(cov), H, PPM, 0.3,
+                                         prediction_cov, disturbed=True)
+    out, W, sel = neighbour_update(film, xy, cov, _sigma(cov), H, PPM, 0.3, prediction_cov,
+                                   disturbed=True)
+    assert sel0.sum() < sel.sum() and sel.mean() > 0.15, (sel0.sum(), sel.sum())
+    assert np.all(sel[sel0])  # the flat fits' update is unchanged
+    assert np.array_equal(out[~sel], xy[~sel]) and np.array_equal(W[~sel], cov[~sel])
+
+    # against the exact truth: the scan's crosses nearer their truth, the updated ones much
+    def rms(p, k):
+        return np.sqrt(np.mean(np.sum((p[k] - true[k]) ** 2, 1)))
+
+    every = np.ones(len(xy), bool)
+    assert rms(out, every) < 0.9 * rms(out0, every), (rms(out, every), rms(out0, every))
+    assert rms(out, sel) < 0.6 * rms(xy, sel), (rms(out, sel), rms(xy, sel))
+    # with honest covariances (normalised errors of RMS near 1)
+    d = out[sel] - true[sel]
+    z2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(W[sel]), d) / 2.0
+    assert 0.75 < np.sqrt(np.mean(z2)) < 1.3, np.sqrt(np.mean(z2))
+
+
+def test_an_undisturbed_scan_updates_its_flat_fits_alone(monkeypatch):
+    # on a scan whose scene does not disturb the fits, a cross keeps its own fit unless it is
+    # flat beside its peers (the reported crosses stay independent measurements)
+    from softplot.marks import neighbour_prior
+
+    film, H, true, xy, cov = _even_grid(0)
+    out, W, sel = neighbour_update(film, xy, cov, _sigma(cov), H, PPM, 0.3, prediction_cov)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
+    out0, W0, sel0 = neighbour_update(film, xy, cov, _sigma(cov), H, PPM, 0.3, prediction_cov,
+                                      disturbed=True)
+    assert np.array_equal(sel, sel0) and np.array_equal(out, out0) and np.array_equal(W, W0)
+
+
 def test_a_small_grid_keeps_its_own_fits():
     # on a small grid the prediction leans on the global model the cross itself helps fit
     film, H, true, xy, cov, flat = _grid(0, n=4)
@@ -99,6 +154,7 @@ def test_the_sweeps_flat_fits_take_their_neighbours_prediction(seed, renders, mo
 
     with monkeypatch.context() as mp:  # the counterfactual: no prior
         mp.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+        mp.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
         first, doc_first = _run(seed, renders)
     assert len(first.gross) >= 8, first.gross
     sc, doc = _run(seed, renders)
@@ -149,4 +205,5 @@ def test_the_qc_plot_rings_the_crosses_that_lean_on_their_neighbours(tmp_path, m
     assert n >= 3 and got == [f"from neighbours ({n})"], (n, got)
     with monkeypatch.context() as mp:
         mp.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+        mp.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
         assert labels() == (0, [])

@@ -21,6 +21,7 @@ def _second_look_alone(monkeypatch):
     from softplot.marks import neighbour_prior
 
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
 
 
 def _run(seed, renders):

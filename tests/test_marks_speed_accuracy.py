@@ -97,6 +97,7 @@ def test_busy_scene_auto_is_as_accurate_as_the_joint_estimate_on_every_cross(mon
 
     monkeypatch.setattr(scene_tv, "deconv_tv", spy)
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
     errs = {"joint": [], "auto": [], "opening": []}
     patches = {"joint": 0, "auto": 0}
     for seed in (11, 12, 13):

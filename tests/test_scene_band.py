@@ -69,6 +69,7 @@ def test_busy_scene_accuracy_of_the_band_equals_the_whole_patch_solve(monkeypatc
     the neighbours' prior for flat fits (:mod:`softplot.marks.neighbour_prior`), which comes
     after it, is off (it brings the opening's crosses to the joint estimate's error here)."""
     monkeypatch.setattr(neighbour_prior, "PRIOR_FLAT", np.inf)
+    monkeypatch.setattr(neighbour_prior, "PRIOR_ANY_RATIO", np.inf)
     rms_new, rms_old, rms_open = [], [], []
     for seed in (11, 12, 13):
         img, truth = render_scan("rollei-6006", ScanSpec(dpi=1000, rotation_deg=1.5,

@@ -10,16 +10,20 @@ the global model) has a covariance that :func:`~softplot.marks.validation.predic
 propagates exactly from their covariances, plus what the prediction misses of the film's
 deformation.
 
-A cross's fit is flat along a direction where its covariance ``C`` is long there: its
-largest variance at least :data:`PRIOR_FLAT` times the median of the scan's crosses'. There,
-where the prediction's covariance ``P`` is the smaller along some direction (the largest
-eigenvalue of ``P^-1 C`` above :data:`PRIOR_MIN_RATIO`), the two are combined as a Bayesian
-update: ``W = (C^-1 + P^-1)^-1`` and ``x = W (C^-1 x_fit + P^-1 x_pred)``, with ``W``
-reported. Every prediction is made from the crosses' own fits (none from an updated
-position), after the scan's variance factor is taken from their departures: the prior enters
-neither the factor nor another cross's prior. The other crosses keep their own fits (on a
-clean grid the prediction is 2-4 times as precise as a typical cross, yet the reported crosses
-stay independent measurements where their fits hold).
+A cross's fit is flat along a direction where its covariance ``C`` is long there: its largest
+variance at least :data:`PRIOR_FLAT` times the median of the scan's crosses'. There, where the
+prediction's covariance ``P`` is the smaller along some direction (the largest eigenvalue of
+``P^-1 C`` above :data:`PRIOR_MIN_RATIO`), the two are combined as a Bayesian update:
+``W = (C^-1 + P^-1)^-1`` and ``x = W (C^-1 x_fit + P^-1 x_pred)``, with ``W`` reported. On a scan
+whose scene disturbs the fits (a busy scene, measured with the joint scene of
+:mod:`softplot.marks.scene_tv`) every cross may be imprecise, so that none is flat beside its
+peers, while a road or a field edge along an arm leaves some 1-4 px off with a sigma that says
+so: there a cross is updated too where its fit's variance along some direction exceeds the
+prediction's :data:`PRIOR_ANY_RATIO` times (flat or not). Every prediction is made from the
+crosses' own fits (none from an updated position), after the scan's variance factor is taken
+from their departures: the prior enters neither the factor nor another cross's prior. The other
+crosses keep their own fits (on a clean grid the prediction is 2-4 times as precise as a
+typical cross, yet the reported crosses stay independent measurements where their fits hold).
 """
 
 from __future__ import annotations
@@ -31,8 +35,7 @@ from softplot.marks.common import inverse_2x2
 from softplot.marks.neighbours import local_fit
 
 __all__ = ["neighbour_update", "neighbour_posterior", "prediction_miss", "deformation_miss",
-           "PRIOR_FLAT",
-           "PRIOR_MIN_RATIO", "PRIOR_MIN_MARKS"]
+           "PRIOR_FLAT", "PRIOR_MIN_RATIO", "PRIOR_ANY_RATIO", "PRIOR_MIN_MARKS"]
 
 #: a cross's fit is flat where its largest variance is at least this many times the median
 #: of the scan's measured two-armed crosses' largest variances (the robustness sweep: at 2
@@ -44,6 +47,13 @@ PRIOR_FLAT = 2.0
 #: ... and the prior is applied there where the fit's variance along some direction exceeds
 #: the neighbours' prediction's this many times
 PRIOR_MIN_RATIO = 1.0
+#: on a scan whose scene disturbs the fits (``disturbed`` of :func:`neighbour_update`), any
+#: cross, flat or not, whose fit's variance along some direction exceeds the neighbours'
+#: prediction's this many times takes the update too: for crosses of equal precision the
+#: prediction's variance is a quarter to a third of a cross's (16 neighbours, a local
+#: quadratic), so this picks the crosses that their scene leaves less precise than their
+#: neighbours
+PRIOR_ANY_RATIO = 4.0
 #: ... on grids of at least this many measured two-armed crosses: on a small grid the
 #: prediction leans on the global model, which the cross itself helps to fit (its error and
 #: its prediction's are not independent)
@@ -77,7 +87,7 @@ def prediction_miss(film, r, cov, sigma, ppm, floor_um) -> tuple[float, float]:
     return deformation_miss(r - predict(r), cov, predict, ppm, floor_um)
 
 
-def neighbour_update(film, xy, cov, sigma, H, ppm, floor_um, prediction_cov):
+def neighbour_update(film, xy, cov, sigma, H, ppm, floor_um, prediction_cov, disturbed=False):
     """The Bayesian update of the crosses at ``film`` (M, 2) mm, measured at ``xy`` (M, 2)
     pixel system with the reported covariances ``cov`` (M, 2, 2) px^2 (pixel system, the
     scan's variance factor applied), by their neighbours' leave-one-out prediction where
@@ -86,7 +96,9 @@ def neighbour_update(film, xy, cov, sigma, H, ppm, floor_um, prediction_cov):
     crosses' precisions, ``H`` (3, 3) the global model film mm -> pixel system, ``ppm`` px
     per film mm, ``floor_um`` the deformation floor (film um), ``prediction_cov`` the exact
     propagation (:func:`softplot.marks.validation.prediction_cov`), computed for the flat
-    fits alone.
+    fits alone. ``disturbed``: the scan's scene disturbs the fits (a busy scene, measured
+    with the joint scene): a cross whose fit is far less precise than its prediction
+    (:data:`PRIOR_ANY_RATIO`) is updated too, flat or not.
 
     Returns ``(xy, cov, sel)``: the updated positions (M, 2) and covariances (M, 2, 2)
     (pixel system; the fit's own where not updated) and which crosses were (M,) bool. With
@@ -99,16 +111,32 @@ def neighbour_update(film, xy, cov, sigma, H, ppm, floor_um, prediction_cov):
     if len(xy) < PRIOR_MIN_MARKS:
         return xy, cov, sel
     lam = np.linalg.eigvalsh(cov)[:, 1]  # the largest variance (px^2)
-    cand = np.where(lam > PRIOR_FLAT * np.median(lam))[0]
-    if cand.size == 0:
+    flat = lam > PRIOR_FLAT * np.median(lam)
+    if not (flat.any() or disturbed):
         return xy, cov, sel
     r = xy - grid.apply_h(H, film)
-    miss, _ = prediction_miss(film, r, cov, sigma, ppm, floor_um)
+    miss, share = prediction_miss(film, r, cov, sigma, ppm, floor_um)
+    any_ratio = PRIOR_ANY_RATIO if disturbed else np.inf
+    cand = np.where(flat | _far_worse(lam, cov, share, miss, any_ratio))[0]
+    if cand.size == 0:
+        return xy, cov, sel
     post, W, ratio = neighbour_posterior(film, xy, cov, sigma, H, miss, prediction_cov, cand)
-    ok = np.nan_to_num(ratio, nan=-np.inf) > PRIOR_MIN_RATIO
+    ratio = np.nan_to_num(ratio, nan=-np.inf)
+    ok = np.where(flat[cand], ratio > PRIOR_MIN_RATIO, ratio > any_ratio)
     sel[cand[ok]] = True
     xy[cand[ok]], cov[cand[ok]] = post[ok], W[ok]
     return xy, cov, sel
+
+
+def _far_worse(lam, cov, share, miss, ratio) -> np.ndarray:
+    """The crosses (M,) bool whose largest variance ``lam`` (M,) px^2 may exceed their
+    neighbours' prediction's ``ratio`` times: more than half that many times
+    the typical prediction's variance, ``share`` (the prediction's share of unit noise,
+    :func:`deformation_miss`) times the median cross's mean variance (``cov`` (M, 2, 2)
+    px^2, pixel system) plus ``miss`` (px^2). Only these get the exact propagation (its
+    cost grows with the square of the crosses)."""
+    typical = share * float(np.median(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))) + miss
+    return lam > 0.5 * ratio * typical
 
 
 def neighbour_posterior(film, xy, cov, sigma, H, miss, prediction_cov, q):

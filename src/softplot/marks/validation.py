@@ -250,13 +250,16 @@ def _validate(scan, pr: Prediction, m: Measurement, rules: AcceptRules | None) -
 
 def neighbour_prior(film, m: Measurement, two, H, sigma, ppm) -> np.ndarray:
     """The measured two-armed crosses ``two`` (N bool) of ``m`` updated in place by their
-    neighbours' prediction where their fit is flat along a direction
+    neighbours' prediction where their fit is flat along a direction, and on a scan whose
+    scene disturbs the fits (measured with the joint scene, ``m.scene_tv``) also where their
+    fit is far less precise than the prediction
     (:func:`softplot.marks.neighbour_prior.neighbour_update`; ``film`` (N, 2) mm, ``H`` the
     global model film mm -> pixel system, ``sigma`` (N,) px, ``ppm`` px per mm); returns the
     indices updated."""
     idx = np.where(two)[0]
     xy2, cov2, sel = neighbour_update(film[idx], m.xy[idx], m.cov[idx], sigma[idx], H, ppm,
-                                      DEFORMATION_FLOOR_UM, prediction_cov)
+                                      DEFORMATION_FLOOR_UM, prediction_cov,
+                                      disturbed=bool(m.scene_tv))
     m.xy[idx], m.cov[idx] = xy2, cov2
     return idx[sel]
 
