@@ -4,6 +4,8 @@ fitted in parts. Each must give what the one-by-one computation gives, to the bi
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 
@@ -153,4 +155,35 @@ def test_geometry_on_two_threads_is_the_one_threads(two_threads, monkeypatch):
     runtime.set_threads(1)
     want = geometry.estimate_geometry(*args, **kw)
     assert got.source == want.source == "scan" and got.n >= 10
+    assert repr(got) == repr(want)
+
+
+def test_width_trials_on_two_threads_are_the_one_threads(two_threads, monkeypatch):
+    """The line widths (or arms) the profiles leave in doubt are tried side by side on the
+    threads: each trial's fits are its own, so the width chosen and every trial's score are
+    those of trying them one after the other."""
+    from softplot.marks import marksize
+
+    img, truth = render_scan(CAM, ScanSpec(dpi=600.0, rotation_deg=1.5, scene="busy"), 2)
+    calls, scores = [], []
+
+    def keep(*args, **kw):
+        calls.append((args, kw))
+        return marksize.choose_width(*args, **kw)
+
+    def trial(*args, **kw):
+        scores.append(trial_score(*args, **kw))
+        return scores[-1]
+
+    trial_score = marksize._trial_score
+    monkeypatch.setattr(importlib.import_module("softplot.marks.detect"), "choose_width", keep)
+    detect(Scan.from_array(img, dpi=truth["dpi"]), load_camera(CAM))
+    args, kw = calls[0]
+    monkeypatch.setattr(marksize, "_trial_score", trial)
+    got = marksize.choose_width(*args, **kw)
+    two = sorted(scores)
+    scores.clear()
+    runtime.set_threads(1)
+    want = marksize.choose_width(*args, **kw)
+    assert len(scores) >= 2 and sorted(scores) == two  # several trials, the same scores
     assert repr(got) == repr(want)

@@ -24,6 +24,7 @@ from softplot.marks.geometry import (
 from softplot.marks.measure import AcceptRules, measure
 from softplot.marks.prediction import Prediction
 from softplot.marks.template import MarkShape
+from softplot.runtime import thread_map
 
 __all__ = ["mark_geometry", "centred_geometry", "choose_width", "arm_candidates"]
 
@@ -98,7 +99,7 @@ def choose_width(scan, pr: Prediction, geom: MarkGeometry, guess_width: float,
     arms = arm_candidates(geom, geom.arm_px if guess_arm is None else guess_arm)
     if len(arms) > 1 and len(trial):
         w = geom.width_px if np.isfinite(geom.width_px) else guess_width
-        scores = [_trial_score(scan, pr, trial, a, w, rules) for a in arms]
+        scores = thread_map(lambda a: _trial_score(scan, pr, trial, a, w, rules), arms)
         best = int(np.argmax(scores))
         if best:
             geom = geom.with_arm(arms[best])
@@ -106,5 +107,6 @@ def choose_width(scan, pr: Prediction, geom: MarkGeometry, guess_width: float,
     if len(widths) == 1 or not len(trial):
         return geom.with_width(widths[0])
     # the profiles contradict the guess: the least-squares fit of the best crosses decides
-    scores = [_trial_score(scan, pr, trial, geom.arm_px, w, rules) for w in widths]
+    # (each trial's fits are its own: the trials side by side on the process's threads)
+    scores = thread_map(lambda w: _trial_score(scan, pr, trial, geom.arm_px, w, rules), widths)
     return geom.with_width(widths[int(np.argmax(scores))])
