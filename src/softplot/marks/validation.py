@@ -25,7 +25,14 @@ from scipy.optimize import nnls
 
 from softplot.marks import grid
 from softplot.marks.common import inverse_2x2
-from softplot.marks.measure import AcceptRules, bar_share, measure, measure_one_arm, peer_gain
+from softplot.marks.measure import (
+    AcceptRules,
+    _merge_fine,
+    bar_share,
+    measure,
+    measure_one_arm,
+    peer_gain,
+)
 from softplot.marks.measurement import Measurement, held_blur
 from softplot.marks.neighbour_prior import deformation_miss, neighbour_update
 from softplot.marks.neighbours import (
@@ -54,7 +61,8 @@ __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "rejec
            "OUTLIER_K", "OUTLIER_FLOOR_MM", "OUTLIER_FLOOR_INNER", "MAX_GRID_RMS_MM",
            "LONE_ARM_ALONG_MAX_MM", "PATTERN_OUTLIER_MM",
            "REINSTATE_DEGREES", "RESCUE_MIN_GAIN", "RESCUE_MAX_SIGMA_RATIO", "EXTRAPOLATION_MAX",
-           "EDGE_CUT_MAX", "EDGE_MAX_SIGMA_RATIO", "consistent_outline", "CONSISTENT_K",
+           "EDGE_CUT_MAX", "EDGE_MAX_SIGMA_RATIO", "EDGE_WHOLE", "consistent_outline",
+           "CONSISTENT_K",
            "CONSISTENT_PRED_K", "outlier_floor", "reinstate", "smooth_residuals", "global_model"]
 
 #: departures from the smooth deformation field below this (film mm) are never outliers on
@@ -123,6 +131,10 @@ CONSISTENT_PRED_K = 5.0
 #: refused at :data:`RESCUE_MAX_SIGMA_RATIO`. The departure from the neighbours' prediction
 #: (the outlier test's threshold) still judges them.
 EDGE_MAX_SIGMA_RATIO = 10.0
+#: :func:`edge_cut_part`'s value for a cross none of whose tips leaves the scan: one the first
+#: prediction placed across the scan's edge and the measured crosses' prediction places whole
+#: on it (the sweep's render 327: R3C4's tip 1.3 px inside, never fitted), fitted whole
+EDGE_WHOLE = 4
 
 
 @dataclass
@@ -1104,12 +1116,13 @@ def lone_bar_prediction_cov(film, cov, sigma, meas, q, H, loo, ppm, vfac) -> np.
 
 def edge_cut_part(xy, J, ppm, shape, width, height):
     """The half-arm by which each cross leaves the scan, where it is the only one and its tip
-    leaves by at most :data:`EDGE_CUT_MAX` of the half-arm; -1 elsewhere (N,) int (0: +u,
-    1: +v, 2: -u, 3: -v of the mark frame, as :func:`~softplot.marks.measure.measure`'s
-    ``drop_part``). ``xy`` (N, 2) the crosses' positions and ``J`` (N, 2, 2) the model's
-    d pixel / d film mm there (pixel system), ``shape`` (px) the cross; a tip leaves where it
-    lies less than a pixel inside the scan's ``width`` x ``height`` (as the test of what is
-    fitted, :meth:`~softplot.marks.prediction.Prediction.inside`)."""
+    leaves by at most :data:`EDGE_CUT_MAX` of the half-arm; :data:`EDGE_WHOLE` where no tip
+    leaves (the cross lies whole on the scan); -1 elsewhere (N,) int (0: +u, 1: +v, 2: -u,
+    3: -v of the mark frame, as :func:`~softplot.marks.measure.measure`'s ``drop_part``).
+    ``xy`` (N, 2) the crosses' positions and ``J`` (N, 2, 2) the model's d pixel / d film mm
+    there (pixel system), ``shape`` (px) the cross; a tip leaves where it lies less than a
+    pixel inside the scan's ``width`` x ``height`` (as the test of what is fitted,
+    :meth:`~softplot.marks.prediction.Prediction.inside`)."""
     ext = 0.5 * shape.length + 0.5 * shape.width
     # tips along film +x, -x, +y, -y: the mark frame's +u, -u, -v, +v
     d = np.stack([J[:, :, 0], -J[:, :, 0], J[:, :, 1], -J[:, :, 1]], 1) / ppm  # (N, 4, 2)
@@ -1119,14 +1132,16 @@ def edge_cut_part(xy, J, ppm, shape, width, height):
     k = np.argmax(over, 1)
     arm = ext * np.hypot(*d[np.arange(len(k)), k].T)
     one = ((over > 0).sum(1) == 1) & (over.max(1) <= EDGE_CUT_MAX * arm)
-    return np.where(one, np.array([0, 2, 3, 1])[k], -1)
+    part = np.where(one, np.array([0, 2, 3, 1])[k], -1)
+    return np.where((over > 0).any(1), part, EDGE_WHOLE)
 
 
 def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, departure,
                  rules) -> np.ndarray:
     """Crosses not fitted because the scan's edge cuts them (:func:`edge_cut_part`: one
-    half-arm's tip out by a little), measured from their other three half-arms, after the
-    validation: from the position their measured neighbours predict (the model ``Hm`` plus
+    half-arm's tip out by a little), measured from their other three half-arms (whole where
+    the measured crosses' prediction places every tip on the scan, :data:`EDGE_WHOLE`), after
+    the validation: from the position their measured neighbours predict (the model ``Hm`` plus
     a local quadratic of the residuals), with the affine their positions predict held
     (:func:`position_affine`, else the model's) and the blur held. Accepted as the rescue
     accepts (:func:`rescue`: a faint cross as the first pass accepts it, within the outlier
@@ -1155,9 +1170,8 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     held, _ = position_affine(film, m.xy, arms == 2, ppm)
     A = np.where(np.isfinite(held[q]).all((1, 2))[:, None, None], held[q], pr.A[q])
     gain_ref = peer_gain(m.fine, least=1)
-    f = measure(sc, shape, target, A, pr.s0, pr.init_err, pr.sign, rules, anchor=target,
-                max_shift=pr.max_shift, drop_part=part, fit_shape=False,
-                scene_tv=m.scene_tv, blur=held_blur(m.fine), gain_ref=gain_ref)
+    f = _edge_fits(sc, shape, target, A, part, pr, rules, m.scene_tv, held_blur(m.fine),
+                   gain_ref)
     # the outline's spread of the departures (the crosses at the scan's edge extrapolate)
     edge = outline(film, arms == 2)
     dev = np.hypot(*(r[meas] - local_prediction(film[meas], r[meas], sigma=sigma[meas])).T)
@@ -1180,6 +1194,24 @@ def edge_crosses(sc, pr: Prediction, m: Measurement, arms, Hm, vfac, floor_px, d
     for i in got:
         m.status[i], m.reason[i], arms[i] = "measured", "", 2
     return got
+
+
+def _edge_fits(sc, shape, target, A, part, pr: Prediction, rules, scene_tv, blur, gain_ref):
+    """:func:`edge_crosses`' fits of the crosses at ``target`` (Q, 2, pixel system) with the
+    affines ``A`` (Q, 2, 2) held, anchored there: without the half-arm ``part`` (Q,) names,
+    and whole where it is :data:`EDGE_WHOLE` (one call of
+    :func:`~softplot.marks.measure.measure` each); a :class:`~softplot.marks.measure.Fine`
+    of Q rows."""
+    pieces = []
+    for sel in (part != EDGE_WHOLE, part == EDGE_WHOLE):
+        k = np.where(sel)[0]
+        if k.size:
+            drop = None if part[k[0]] == EDGE_WHOLE else part[k]
+            pieces.append((k, measure(sc, shape, target[k], A[k], pr.s0, pr.init_err, pr.sign,
+                                      rules, anchor=target[k], max_shift=pr.max_shift,
+                                      drop_part=drop, fit_shape=False, scene_tv=scene_tv,
+                                      blur=blur, gain_ref=gain_ref)))
+    return pieces[0][1] if len(pieces) == 1 else _merge_fine(len(part), pieces)
 
 
 def _reach_beyond(q_film, film, sigma, edge, draws=16):
