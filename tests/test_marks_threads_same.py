@@ -94,7 +94,7 @@ def test_a_hypothesis_its_batch_rules_out_is_dropped(two_threads, monkeypatch):
     agree = {0.0: 50.0, 0.01: 80.0, 0.02: 40.0, 0.03: 60.0, 0.04: 99.0}
     refined = []
 
-    def lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
+    def lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol, max_shear=None):
         refined.append(theta)
         B = np.array([[lx, 0.0], [0.0, ly]]) * (1.0 + theta)
         return p0, B, np.zeros((1, 2), int), np.array([int(theta * 100)]), (agree[theta], 1.0)

@@ -445,6 +445,7 @@ def fit_grid(
     part: tuple[int, int, int, int] | None = None,
     seeable=None,
     by_count: bool = False,
+    max_shear: float | None = None,
 ) -> GridFit | None:
     """Fit the reseau lattice to candidate peaks and assign rows and columns.
 
@@ -494,6 +495,10 @@ def fit_grid(
     by_count : bool
         The lattice most peaks agree with, not the one of the highest sum of their scores
         (:func:`find_lattice`).
+    max_shear : float, optional
+        With ``scale_tol``: the lattices through three peaks whose steps' angle departs from
+        a right angle by more (its cosine, :func:`_shear`) are not the reseau's
+        (:func:`_robust_lattice`); None admits any above 30 degrees.
 
     Returns
     -------
@@ -503,7 +508,7 @@ def fit_grid(
     xy = np.asarray(xy, float)
     score = np.asarray(score, float)
     lat = find_lattice(xy, score, reseau, px_per_mm, rotate_deg, max_rotation_deg, scale_tol,
-                       by_count)
+                       by_count, max_shear)
     if lat is None:
         return None
     ident = identify(lat, score, reseau, image_size, margin_px, frame_evidence, format_mm,
@@ -511,6 +516,15 @@ def fit_grid(
     if ident is None:
         return None
     return projective_model(xy, score, reseau, ident, lat.px_per_mm, scale_tol)
+
+
+def _shear(Bm) -> np.ndarray:
+    """The cosine of the angle between the two steps (columns) of the lattice basis
+    ``Bm`` (..., 2, 2) (pixel system): 0 for a rectangular lattice."""
+    Bm = np.asarray(Bm, float)
+    n = np.hypot(Bm[..., 0, :], Bm[..., 1, :])
+    dot = Bm[..., 0, 0] * Bm[..., 0, 1] + Bm[..., 1, 0] * Bm[..., 1, 1]
+    return dot / np.maximum(n[..., 0] * n[..., 1], 1e-300)
 
 
 def _scale_ok(Bm, lx, ly, scale_tol) -> bool:
@@ -538,7 +552,8 @@ def _best_per_node(idx, sel, key_val):
 
 
 def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
-                 max_rotation_deg=20.0, scale_tol=None, by_count=False) -> Lattice | None:
+                 max_rotation_deg=20.0, scale_tol=None, by_count=False,
+                 max_shear=None) -> Lattice | None:
     """The affine lattice of the reseau's pitch through the candidate peaks ``xy`` (M, 2)
     (pixel system) with scores ``score`` (M,).
 
@@ -549,7 +564,8 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
     nearer ``rotate_deg``, then the one they lie closer to) is kept. Arguments as
     :func:`fit_grid`'s; None when fewer than 3 peaks lie on any lattice. ``by_count``: the
     peaks agree with a lattice by their number, not by the sum of their scores (a reseau of
-    weak crosses that a busy scene's stronger peaks outscore)."""
+    weak crosses that a busy scene's stronger peaks outscore); ``max_shear`` as
+    :func:`fit_grid`'s."""
     M = len(xy)
     if M < 4:
         return None
@@ -567,7 +583,7 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
 
     def refine(h):
         theta, p0, _ = h
-        return _lattice_at(xy, agree_by, theta, p0, lx, ly, min(px, py), scale_tol)
+        return _lattice_at(xy, agree_by, theta, p0, lx, ly, min(px, py), scale_tol, max_shear)
 
     def skipped(n_cell):  # too few peaks in its cell to gather as many as the best lattice
         return best_key is not None and 1.5 * n_cell + 3 < best_key[0]
@@ -598,7 +614,7 @@ def find_lattice(xy, score, reseau: Reseau, px_per_mm=None, rotate_deg=0.0,
     return best
 
 
-def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
+def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol, max_shear=None):
     """The lattice near rotation ``theta`` (radians) through node ``p0`` (pixel system):
     (p0, B, idx, cand, (agreeing peaks, their median distance px)), the first four as
     :class:`Lattice` holds them, or None when fewer than 3 peaks lie on it."""
@@ -630,7 +646,7 @@ def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
     t_fine = min(0.2, 0.5 / pmin)
     t_agree = min(t_fine, AGREE_MM / pmin)
     p0, Bc, lim_px = _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine,
-                                     t_agree, scale_tol)
+                                     t_agree, scale_tol, max_shear)
     # every peak against the robust lattice; per node the closest peak within the limit
     for _ in range(2):
         pred_all = p0 + idx @ Bc.T
@@ -649,7 +665,8 @@ def _lattice_at(xy, score, theta, p0, lx, ly, pmin, scale_tol):
                                if agree.any() else np.inf)
 
 
-def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, scale_tol):
+def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, scale_tol,
+                    max_shear=None):
     """The lattice most nodes agree with, over exact affine lattices through triplets of
     peaks on three nodes (among ``inl``, the peaks within ``tol`` pitches of a node: all
     triplets for a few peaks, 300 random ones otherwise).
@@ -660,7 +677,8 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
     small grid clutter near a node often scores higher than the cross, and outnumbers the
     crosses (a least median of squares would be clutter's there). Returns (p0, B, lim_px):
     the lattice (the given one when no triplet fits) and the distance (px) within which a
-    peak belongs to a node, max(t_fine pitches, 4 robust sigmas)."""
+    peak belongs to a node, max(t_fine pitches, 4 robust sigmas). ``max_shear``: as
+    :func:`fit_grid`'s."""
     pitch_px = float(np.sqrt(abs(np.linalg.det(Bc))))
     lim_px = tol * pitch_px
     pts = np.where(inl)[0]
@@ -684,9 +702,13 @@ def _robust_lattice(xy, score, idx, inl, p0, Bc, lx, ly, tol, t_fine, t_agree, s
     ok = np.abs(np.linalg.det(A3)) > 1e-9
     sol = np.linalg.solve(A3[ok], xy[pts][tri[ok]]) if ok.any() else np.zeros((0, 3, 2))
     if scale_tol is not None and len(sol):
-        # exact lattices through three nodes at another spacing are not the reseau
+        # exact lattices through three nodes at another spacing are not the reseau (nor,
+        # with ``max_shear``, sheared ones)
         nb = np.hypot(sol[:, 1:, 0], sol[:, 1:, 1]) / np.array([lx, ly])
-        sol = sol[np.all(np.abs(nb - 1.0) <= scale_tol, 1)]
+        keep = np.all(np.abs(nb - 1.0) <= scale_tol, 1)
+        if max_shear is not None:
+            keep &= np.abs(_shear(sol[:, 1:].transpose(0, 2, 1))) <= max_shear
+        sol = sol[keep]
     if len(sol):
         # residuals of every peak against every triplet's lattice, one coordinate at a
         # time (two (T, 3) @ (3, P) products); per node its closest peak

@@ -33,7 +33,8 @@ from softplot.marks.overview import ReseauOverview, reseau_overview
 from softplot.marks.template import cross_shape
 
 __all__ = ["Lattice", "fit_lattice", "turn_template", "estimate_dpi", "frame_evidence",
-           "seeable", "between_nodes", "reseau_sized", "renamed", "FRAME_STEP", "SCALE_TOL",
+           "seeable", "between_nodes", "reseau_sized", "renamed", "shear_tol", "FRAME_STEP",
+           "SCALE_TOL", "SHEAR_TOL",
            "HALF_STEPS", "MIN_PART", "MIN_SPANNING"]
 
 #: the step of grey (over the scan's range) that a film format's edge shows at least
@@ -68,6 +69,13 @@ PEAK_MIN = 0.2
 #: with the dpi known, the lattice's spacing stays within this fraction of the certificate's
 #: pitch at that dpi (film shrinkage and scanner anisotropy are a few tenths of a percent)
 SCALE_TOL = 0.03
+#: on the second try (:func:`~softplot.marks.candidates.scene_removed`) the lattice keeps
+#: the certificate's right angle: the cosine of the angle between its steps within this of
+#: 0 (:func:`shear_tol`). Scanner anisotropy and film deformation shear a reseau by well
+#: under a tenth of a degree, the peaks' positions a lattice is fitted to by about a pixel
+#: over a pitch; render 475's lattice through a row of its crosses and a scene peak was
+#: sheared by 13 degrees
+SHEAR_TOL = 0.05
 
 
 @dataclass
@@ -258,6 +266,12 @@ def _level(g, f: int, r: float):
     return level
 
 
+def shear_tol() -> float | None:
+    """The lattice's largest shear (:data:`SHEAR_TOL` on the second try, which is held to
+    the certificate's rectangular grid; None, any, on the first)."""
+    return SHEAR_TOL if removing_scene() else None
+
+
 def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: str,
                 rotate_deg: float, part=None) -> Lattice | None:
     """The certificate's grid fitted to the candidates of each sign ``polarity`` admits; the
@@ -299,7 +313,7 @@ def fit_lattice(scan, ov: ReseauOverview, cands: Candidates, camera, polarity: s
                                  margin_px=max(0.5 * cands.template.length, cands.half) * f,
                                  frame_evidence=frame_evidence(ov.image, f, px_per_mm, pmin),
                                  format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
-                                 seeable=show, by_count=by_count)
+                                 seeable=show, by_count=by_count, max_shear=shear_tol())
 
         fits[sg] = (fit(pk), pk, fit)
     dense = set()
@@ -536,7 +550,7 @@ def turn_template(lat: Lattice, scan, ov: ReseauOverview, camera, rotate_deg: fl
                        margin_px=max(0.5 * shape.length, h2 * f), max_rotation_deg=3.0,
                        frame_evidence=frame_evidence(ov.image, f, ppm, pmin),
                        format_mm=camera.format_mm, scale_tol=SCALE_TOL, part=part,
-                       seeable=seeable(ov.image, f, ppm, pmin))
+                       seeable=seeable(ov.image, f, ppm, pmin), max_shear=shear_tol())
     if g2 is not None and len(g2.node) >= len(g.node):
         return Lattice(grid=g2, sign=lat.sign, peaks=pk2, ncc=R2, half=h2, factor=f,
                        densified=lat.densified)

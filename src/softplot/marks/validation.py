@@ -4,8 +4,10 @@
 residual departs from its neighbours' (a smooth film deformation moves neighbours alike) by
 more than a robust threshold, or by more than :data:`OUTLIER_K` times what its own sigma and
 the prediction's error lead one to expect (:func:`departure_model`), is "rejected"
-(:func:`reject_outliers`); rejected and refused crosses are fitted again from the neighbours'
-prediction, once without each half-arm (:func:`rescue`), and, failing that, as a lone bar
+(:func:`reject_outliers`; with fewer than 8 crosses measured, too few for that test, one far
+off the affine of the others: :func:`few_outliers`); rejected and refused crosses are fitted
+again from the neighbours' prediction, once without each half-arm (:func:`rescue`), and,
+failing that, as a lone bar
 (:func:`lone_arms`); a measured cross that departs from its neighbours' prediction far more
 than its peers do, but passed the test by its own imprecision, is fitted again in the same
 way and the refit kept where it lies much nearer the prediction (:func:`second_look`);
@@ -52,6 +54,7 @@ from softplot.marks.precision import (
 from softplot.marks.prediction import Prediction
 
 __all__ = ["Validation", "validate", "validate_pattern", "pattern_model", "reject_outliers",
+           "few_outliers", "FEW_OUTLIER_MM", "FEW_OUTLIER_PX", "FEW_MIN_LEFT",
            "rescue", "second_look", "SECOND_LOOK_SPREAD", "lone_arms", "one_bar_crosses",
            "edge_crosses", "edge_cut_part", "extrapolation", "prediction_cov",
            "lone_bar_prediction_cov",
@@ -457,6 +460,7 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
     """
     Hm = H0
     n_max = max(1, len(film) // 10)
+    few_outliers(film, xy, status, reason, H0)
     edge = outline(film, np.array([s == "measured" for s in status]))
     coef = reach = None
     for _ in range(n_max):
@@ -488,6 +492,57 @@ def reject_outliers(film, xy, status, reason, H0, sigma, floor_px=0.1):
         reason[worst] = "outlier against the global model and its neighbours"
     Hm, residual, rms = global_model(film, xy, status, Hm)
     return Hm, residual, rms, coef
+
+
+#: with fewer than 8 crosses measured (too few for the neighbours' test of
+#: :func:`reject_outliers`), a cross departing by more than this (film mm, and at least
+#: :data:`FEW_OUTLIER_PX`) from the affine of the others is an outlier (:func:`few_outliers`):
+#: a film deformation departs from an affine by a few hundredths of a millimetre over a few
+#: crosses, a fit locked on a scene feature by several pixels (render 475: 9 px, 0.5 mm)
+FEW_OUTLIER_MM = 0.15
+#: ... and at least this (px)
+FEW_OUTLIER_PX = 3.0
+#: the fewest crosses that :func:`few_outliers` leaves measured (an affine of 4 judges one)
+FEW_MIN_LEFT = 5
+
+
+def few_outliers(film, xy, status, reason, H0) -> list[int]:
+    """Where more than :data:`FEW_MIN_LEFT` and fewer than 8 marks are measured, reject
+    (in place, in ``status`` and ``reason``) the one whose leaving out fits the others best
+    (:func:`_loo_affine_departure`), when it departs from their affine model (film mm ->
+    pixel system) by more than :data:`FEW_OUTLIER_MM` (at the scale of ``H0``, film mm ->
+    pixel system, at the marks) and :data:`FEW_OUTLIER_PX`, and repeat while more than
+    :data:`FEW_MIN_LEFT` stay measured. ``film`` (M, 2) mm, ``xy`` (M, 2)
+    pixel system. Returns the indices rejected."""
+    out = []
+    while True:
+        idx = np.flatnonzero(np.array([s == "measured" for s in status]))
+        if not FEW_MIN_LEFT < len(idx) < 8:
+            return out
+        J = grid.h_jacobian(H0, film[idx].mean(0)[None])[0]
+        thr = max(FEW_OUTLIER_MM * float(np.sqrt(abs(np.linalg.det(J)))), FEW_OUTLIER_PX)
+        k, dev = _loo_affine_departure(film[idx], xy[idx])
+        if not dev > thr:
+            return out
+        status[idx[k]] = "rejected"
+        reason[idx[k]] = "outlier against the affine of the other crosses"
+        out.append(int(idx[k]))
+
+
+def _loo_affine_departure(film, xy) -> tuple[int, float]:
+    """The mark whose leaving out fits the others best by an affine model film mm -> pixel
+    system (the least sum of their squared residuals), and its distance (px) from that
+    model: ``(k, dev)``. ``film`` (K, 2) mm, ``xy`` (K, 2) pixel system, K >= 5. (The
+    largest leave-one-out residual alone would point at a corner mark extrapolated from a
+    model that a gross mark among the others pulls.)"""
+    K = len(film)
+    A = np.column_stack([np.ones(K), film - film.mean(0)])
+    others = np.nonzero(~np.eye(K, dtype=bool))[1].reshape(K, K - 1)  # row k: all but k
+    As, ys = A[others], xy[others]  # (K, K-1, 3), (K, K-1, 2)
+    sol = np.linalg.solve(np.einsum("kij,kil->kjl", As, As), np.einsum("kij,kil->kjl", As, ys))
+    rest = np.sum((ys - As @ sol) ** 2, axis=(1, 2))
+    k = int(np.argmin(rest))
+    return k, float(np.hypot(*(xy[k] - A[k] @ sol[k])))
 
 
 def global_model(film, xy, status, H0):
