@@ -32,40 +32,13 @@ def test_thread_map_keeps_order_runs_on_threads_and_never_nests(restore_threads)
 
     out = runtime.thread_map(outer, range(6))
     assert out == [[x * x for x in range(i, i + 3)] for i in range(6)]
-    me = threading.current_thread().name
-    assert all(n.startswith("softplot") or n == me for n in names)
+    assert all(n.startswith("softplot") for n in names)
     with pytest.raises(ZeroDivisionError):
         runtime.thread_map(lambda x: 1 // x, [1, 0, 2])
     runtime.set_threads(1)
     names.clear()
     assert runtime.thread_map(inner, [3]) == [9]
     assert names == [threading.current_thread().name]
-
-
-def test_thread_map_runs_items_in_the_caller_and_one_pool_thread(restore_threads):
-    """Two threads: the caller takes items too (it does not wait idle), beside one pool
-    thread; items that can only finish together (a barrier of two) run at once, so one runs
-    in the caller and one in the pool. Every item counts as pending until it is done, so
-    :func:`~softplot.runtime.share` inside an item sees no idle thread while both run."""
-    runtime.set_threads(2)
-    gate = threading.Barrier(2)
-    where = {}
-
-    def item(x):
-        idle = runtime.idle_threads()
-        gate.wait(timeout=10)  # both items are running
-        where[x] = (threading.current_thread().name, idle)
-        return -x
-
-    assert runtime.thread_map(item, [1, 2]) == [-1, -2]
-    names = sorted(n for n, _ in where.values())
-    me = threading.current_thread().name
-    assert me in names and sum(n.startswith("softplot") for n in names) == 1, names
-    assert all(idle == 0 for _, idle in where.values())
-    # an exception in an item reaches the caller, and nothing stays counted as pending
-    with pytest.raises(ZeroDivisionError):
-        runtime.thread_map(lambda x: 1 // x, [1, 0, 2, 3])
-    assert runtime.idle_threads() == 2
 
 
 def test_detection_is_the_same_on_one_and_two_threads(restore_threads):

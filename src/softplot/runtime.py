@@ -61,8 +61,7 @@ def _run_marked(fn, x):
         _IN_POOL.active = was
 
 
-#: items not done yet (queued or running): those :func:`_submit` gave the pool, and every item
-#: of a :func:`thread_map` from its start until it is done
+#: items submitted to the pool and not done yet (queued or running; :func:`_submit`)
 _PENDING = 0
 _PENDING_LOCK = threading.Lock()
 
@@ -114,64 +113,22 @@ def thread_map(fn, items) -> list:
     """``[fn(x) for x in items]``, on :func:`threads` threads when there are several items.
 
     For work that releases the GIL (OpenCV, large NumPy operations, the compiled LSM kernel).
-    The caller's thread is one of the threads: it and ``threads() - 1`` pool threads take the
-    items in their order, each the next one not started (:func:`_take_items`), so the caller
-    neither waits idle nor is woken for every item. The results are in the order of ``items``
-    and those of the sequential loop to float rounding (float32 sums may round differently
-    with the arrays' place in memory or a multithreaded BLAS's split of a product); an item
-    runs as on a pool thread wherever it runs (:func:`concurrent` false inside: a nested
-    call runs sequentially, no nested pools), and the exception of the first item that
-    raised one is raised in the caller (the items not started then are not run).
+    The results are in the order of ``items`` and those of the sequential loop to float
+    rounding (float32 sums may round differently with the arrays' place in memory or a
+    multithreaded BLAS's split of a product); a call from
+    inside a pool thread runs sequentially (no nested pools), and the first exception is
+    raised in the caller.
     """
     items = list(items)
     if len(items) <= 1 or not concurrent():
         return [fn(x) for x in items]
-    global _PENDING
-    n = len(items)
-    out: list = [None] * n
-    errors: dict = {}
-    state = {"next": 0, "stop": False, "done": 0}
-    lock = threading.Lock()
-    with _PENDING_LOCK:  # every item counts as pending until it is done (idle_threads)
-        _PENDING += n
     pool = _pool()
-    helpers = [pool.submit(_run_marked, _take_items, (fn, items, out, errors, state, lock))
-               for _ in range(min(threads(), n) - 1)]
+    futs = [_submit(pool, fn, x) for x in items]
     try:
-        _run_marked(_take_items, (fn, items, out, errors, state, lock))
+        return [f.result() for f in futs]
     finally:
-        for f in helpers:
-            if not f.cancel():
-                f.result()
-        with _PENDING_LOCK:  # the items never started (after an exception)
-            _PENDING -= n - state["done"]
-    if errors:
-        raise errors[min(errors)]
-    return out
-
-
-def _take_items(args) -> None:
-    """One thread's share of :func:`thread_map`: the next item not started, until none is
-    left (or an item raised)."""
-    global _PENDING
-    fn, items, out, errors, state, lock = args
-    while True:
-        with lock:
-            i = state["next"]
-            if i >= len(items) or state["stop"]:
-                return
-            state["next"] = i + 1
-        try:
-            out[i] = fn(items[i])
-        except BaseException as exc:  # noqa: BLE001 - raised in the caller
-            with lock:
-                errors[i] = exc
-                state["stop"] = True
-        finally:
-            with lock:
-                state["done"] += 1
-            with _PENDING_LOCK:
-                _PENDING -= 1
+        for f in futs:  # after an exception: the items not started are not run
+            f.cancel()
 
 
 def pooled_map(fn, items) -> list:
