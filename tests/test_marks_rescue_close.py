@@ -71,3 +71,27 @@ def test_sweep_gross_rejected_fit_is_still_refused(renders):
     status, err, bound, sigma, sc = _cross(242, "R0C3", renders)
     assert sc.result and sc.wrong == [] and sc.claimed == [] and sc.gross == []
     assert status != "measured" or err <= max(1.0, 8.0 * bound), (status, err)
+
+
+def test_sweep_close_cross_is_tried_as_a_lone_bar_once(renders, monkeypatch):
+    """Render 3's R8C7, measured by the close refit, is tried as a lone bar by
+    :func:`~softplot.marks.validation.lone_arms` (its ``redo``) and not fitted so again by
+    :func:`~softplot.marks.validation.one_bar_crosses` (its ``skip``), where its bars look
+    unlike each other (a busy scene's regression, 0.43): one lone-bar fit of it, not two."""
+    from softplot.synthetic.sweep import make_case, render_case
+
+    case = make_case(3)
+    img, truth, *_ = render_case(case, renders)
+    film = {m["name"]: (m["film_x"], m["film_y"]) for m in truth["marks"]}["R8C7"]
+    seen = []
+    real = validation._one_arm_fits
+
+    def spy(sc, shape, film_all, xy, st, q, *a, **k):
+        seen.append(np.asarray(film_all, float)[np.asarray(q, int)])
+        return real(sc, shape, film_all, xy, st, q, *a, **k)
+
+    monkeypatch.setattr(validation, "_one_arm_fits", spy)
+    status, *_ = _cross(3, "R8C7", renders)
+    assert status == "measured"
+    hits = [bool((np.hypot(*(f - np.asarray(film)).T) < 1e-6).any()) for f in seen]
+    assert sum(hits) == 1, (hits, seen)
