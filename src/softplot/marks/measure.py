@@ -27,7 +27,7 @@ from softplot.runtime import concurrent, pooled_map, thread_map
 
 __all__ = ["patches", "Fine", "measure", "measure_one_arm", "bar_share", "AcceptRules",
            "peer_sigma", "contrast_line", "contrast_unlike", "CONTRAST_TOL", "CONTRAST_LEAST",
-           "peer_gain", "faint"]
+           "peer_gain", "faint", "merge_fine"]
 
 
 def patches(scan, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
@@ -956,7 +956,7 @@ def _accept_sets(res, c0, A0, s0, sign, rules, anchor, max_shift, sets, sigma_re
     return ok, why
 
 
-def _merge_fine(n, pieces) -> Fine:
+def merge_fine(n, pieces) -> Fine:
     """One :class:`Fine` of N marks from ``(indices, Fine)`` pieces."""
     f0 = pieces[0][1]
     kw = {}
@@ -1154,7 +1154,7 @@ def measure(scan, shape: MarkShape, c0: np.ndarray, A0: np.ndarray, s0: float,
                 out.append((k, measure(scan, shape, c0[k], A0[k], s0, init_err, sign, rules,
                                        fit_shape, scene, anchor[k], max_shift, chunk, int(v),
                                        scene_tv, auto_tv, busy, blur)))
-            return _merge_fine(n, out)
+            return merge_fine(n, out)
     multi = sets.max() > 0
     xy = np.full((n, 2), np.nan)
     cov = np.full((n, 2, 2), np.nan)

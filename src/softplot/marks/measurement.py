@@ -23,9 +23,9 @@ from softplot.marks import grid
 from softplot.marks.measure import (
     AcceptRules,
     Fine,
-    _merge_fine,
     measure,
     median_blur,
+    merge_fine,
     peer_gain,
     peer_sigma,
 )
@@ -512,7 +512,7 @@ def _keep_opening(f1: Fine, f0: Fine, film: np.ndarray) -> Fine:
     the later refits from the neighbours' shape measure it again."""
     keep = f0.ok & ~f1.ok
     k0, k1 = np.where(keep)[0], np.where(~keep)[0]
-    out = _merge_fine(len(keep), [(k1, f1.rows(k1)), (k0, f0.rows(k0))])
+    out = merge_fine(len(keep), [(k1, f1.rows(k1)), (k0, f0.rows(k0))])
     if out.ok.sum() < 8:
         return out
     ok = np.where(out.ok)[0]

@@ -29,10 +29,10 @@ from softplot.marks import grid
 from softplot.marks.common import inverse_2x2
 from softplot.marks.measure import (
     AcceptRules,
-    _merge_fine,
     bar_share,
     measure,
     measure_one_arm,
+    merge_fine,
     peer_gain,
 )
 from softplot.marks.measurement import Measurement, held_blur
@@ -1311,7 +1311,7 @@ def _edge_fits(sc, shape, target, A, part, pr: Prediction, rules, scene_tv, blur
                                       rules, anchor=target[k], max_shift=pr.max_shift,
                                       drop_part=drop, fit_shape=False, scene_tv=scene_tv,
                                       blur=blur, gain_ref=gain_ref)))
-    return pieces[0][1] if len(pieces) == 1 else _merge_fine(len(part), pieces)
+    return pieces[0][1] if len(pieces) == 1 else merge_fine(len(part), pieces)
 
 
 def _reach_beyond(q_film, film, sigma, edge, draws=16):
