@@ -916,10 +916,16 @@ def _rescue_like(f2, s_meas, gain_ref):
     (independent-pixel sigma at most :data:`RESCUE_MAX_SIGMA_RATIO` times the measured
     crosses' median ``s_meas`` px) and, with ``gain_ref``, of at least
     :data:`RESCUE_MIN_GAIN` of the crosses' contrast (bool per row)."""
-    good = np.nan_to_num(f2.sigma, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas
-    if gain_ref is not None and f2.gain is not None:
-        good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
-    return good
+    return ((np.nan_to_num(f2.sigma, nan=np.inf) <= RESCUE_MAX_SIGMA_RATIO * s_meas)
+            & _rescue_gain_ok(f2, gain_ref))
+
+
+def _rescue_gain_ok(f2, gain_ref):
+    """Refits (a :class:`~softplot.marks.measure.Fine`) of at least :data:`RESCUE_MIN_GAIN`
+    of the crosses' contrast ``gain_ref`` (bool per row; all where there is no reference)."""
+    if gain_ref is None or f2.gain is None:
+        return np.ones(np.shape(f2.sigma), bool)
+    return np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
 
 
 def _rescue_close(f2, d, s_meas, gain_ref):
@@ -931,10 +937,8 @@ def _rescue_close(f2, d, s_meas, gain_ref):
     row): a cross under a darker or busier patch than its peers, measured by its three clean
     half-arms where its neighbours say it is."""
     sg = np.nan_to_num(f2.sigma, nan=np.inf)
-    good = (sg <= RESCUE_CLOSE_SIGMA_RATIO * s_meas) & (d <= RESCUE_CLOSE_K * sg)
-    if gain_ref is not None and f2.gain is not None:
-        good &= np.abs(np.nan_to_num(f2.gain)) >= RESCUE_MIN_GAIN * gain_ref
-    return good
+    return ((sg <= RESCUE_CLOSE_SIGMA_RATIO * s_meas) & (d <= RESCUE_CLOSE_K * sg)
+            & _rescue_gain_ok(f2, gain_ref))
 
 
 def lone_arms(sc, shape, film, xy, cov, status, reason, arms, Hm, sigma, A, s0, sign, rules,
